@@ -1,0 +1,385 @@
+"""The BOP dataset format: the only module that knows its file layout and its millimetres.
+
+Everything this module returns is in metres; everything it is given is in metres and converted to
+BOP millimetres on the way out. Layout (https://github.com/thodan/bop_toolkit/blob/master/docs/bop_datasets_format.md):
+
+    DATASET/models/{models_info.json, obj_OBJID.ply}
+    DATASET/camera.json
+    DATASET/SPLIT/SCENE/{scene_camera.json, scene_gt.json, scene_gt_info.json}
+    DATASET/SPLIT/SCENE/{rgb,depth}/IMID.png
+    DATASET/SPLIT/SCENE/{mask,mask_visib}/IMID_GTIDX.png
+
+with SCENE and IMID six-digit zero-padded ids. ``depth_mm = png_value * depth_scale``.
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from argen.errors import ArgenError
+from argen.fileio import atomic_path, read_json, write_json
+
+MM_PER_M = 1000.0
+
+
+# ------------------------------------------------------------------------------------------ paths
+
+
+def scene_dir(root: str | os.PathLike, split: str, scene_id: int) -> Path:
+    """Folder of one scene: ``root/split/SCENE``."""
+    return Path(root) / split / f"{scene_id:06d}"
+
+
+def image_path(root, split: str, scene_id: int, im_id: int, kind: str = "rgb", ext: str = ".png") -> Path:
+    """Path of an ``rgb`` or ``depth`` image."""
+    return scene_dir(root, split, scene_id) / kind / f"{im_id:06d}{ext}"
+
+
+def mask_path(root, split: str, scene_id: int, im_id: int, gt_idx: int, visib: bool = True) -> Path:
+    """Path of a (visible) instance mask."""
+    kind = "mask_visib" if visib else "mask"
+    return scene_dir(root, split, scene_id) / kind / f"{im_id:06d}_{gt_idx:06d}.png"
+
+
+# ---------------------------------------------------------------------------------- models_info
+
+
+@dataclass
+class ModelInfo:
+    """One entry of ``models_info.json`` in metres.
+
+    diameter: metres. bbox_min, bbox_size: (3,) metres, model frame.
+    symmetries_discrete: list of (4,4) transforms, translation in metres.
+    symmetries_continuous: list of {"axis": (3,), "offset": (3,) metres}.
+    """
+
+    diameter: float
+    bbox_min: np.ndarray
+    bbox_size: np.ndarray
+    symmetries_discrete: list[np.ndarray] = field(default_factory=list)
+    symmetries_continuous: list[dict] = field(default_factory=list)
+
+
+def parse_models_info(data: dict, where: str = "models_info.json") -> dict[int, ModelInfo]:
+    """Parse the JSON content of ``models_info.json`` (mm) into ``{obj_id: ModelInfo}`` (metres)."""
+    if not isinstance(data, dict) or not data:
+        raise ArgenError(f"{where} holds no objects")
+    out: dict[int, ModelInfo] = {}
+    for key, entry in data.items():
+        try:
+            obj_id = int(key)
+            diameter = float(entry["diameter"]) / MM_PER_M
+            bmin = np.array([entry["min_x"], entry["min_y"], entry["min_z"]], float) / MM_PER_M
+            bsize = np.array([entry["size_x"], entry["size_y"], entry["size_z"]], float) / MM_PER_M
+            sym_d = []
+            for s in entry.get("symmetries_discrete", []):
+                T = np.array(s, float).reshape(4, 4)
+                T[:3, 3] /= MM_PER_M
+                sym_d.append(T)
+            sym_c = [
+                {"axis": np.array(s["axis"], float), "offset": np.array(s["offset"], float) / MM_PER_M}
+                for s in entry.get("symmetries_continuous", [])
+            ]
+        except (KeyError, TypeError, ValueError) as exc:
+            raise ArgenError(f"{where}: entry '{key}' is malformed ({exc.__class__.__name__}: {exc})") from exc
+        if not (diameter > 0 and np.all(bsize > 0)):
+            raise ArgenError(f"{where}: entry '{key}' has a non-positive diameter or size")
+        out[obj_id] = ModelInfo(diameter, bmin, bsize, sym_d, sym_c)
+    return out
+
+
+def read_models_info(path: str | os.PathLike) -> dict[int, ModelInfo]:
+    """Read ``models_info.json`` into ``{obj_id: ModelInfo}`` in metres."""
+    return parse_models_info(read_json(path, "models_info.json"), where=str(path))
+
+
+def models_info_entry(info: ModelInfo) -> dict:
+    """One ``models_info.json`` entry (mm) for ``info`` (metres)."""
+    mn, sz = info.bbox_min * MM_PER_M, info.bbox_size * MM_PER_M
+    entry = {
+        "diameter": float(info.diameter * MM_PER_M),
+        "min_x": float(mn[0]), "min_y": float(mn[1]), "min_z": float(mn[2]),
+        "size_x": float(sz[0]), "size_y": float(sz[1]), "size_z": float(sz[2]),
+    }
+    if info.symmetries_discrete:
+        syms = []
+        for T in info.symmetries_discrete:
+            T = np.array(T, float).copy()
+            T[:3, 3] *= MM_PER_M
+            syms.append([float(v) for v in T.reshape(-1)])
+        entry["symmetries_discrete"] = syms
+    if info.symmetries_continuous:
+        entry["symmetries_continuous"] = [
+            {"axis": [float(v) for v in s["axis"]], "offset": [float(v) * MM_PER_M for v in s["offset"]]}
+            for s in info.symmetries_continuous
+        ]
+    return entry
+
+
+def write_models_info(path: str | os.PathLike, infos: dict[int, ModelInfo]) -> None:
+    """Write ``{obj_id: ModelInfo}`` (metres) as ``models_info.json`` (mm), atomically."""
+    write_json(path, {str(k): models_info_entry(v) for k, v in sorted(infos.items())})
+
+
+def model_path(models_dir: str | os.PathLike, obj_id: int) -> Path:
+    return Path(models_dir) / f"obj_{obj_id:06d}.ply"
+
+
+def read_mesh(path: str | os.PathLike):
+    """Load a BOP PLY model (mm) as a ``trimesh.Trimesh`` in metres, keeping vertex colours."""
+    import trimesh
+
+    path = Path(path)
+    if not path.is_file():
+        raise ArgenError(f"model file not found: {path}")
+    if path.stat().st_size == 0:
+        raise ArgenError(f"model file is empty: {path}")
+    try:
+        mesh = trimesh.load(path, force="mesh", process=False)
+    except Exception as exc:  # trimesh raises many kinds on corrupt input
+        raise ArgenError(f"cannot read model {path}: corrupt or not a PLY mesh ({exc.__class__.__name__})") from exc
+    if not isinstance(mesh, trimesh.Trimesh) or len(mesh.faces) == 0 or len(mesh.vertices) < 4:
+        raise ArgenError(f"model {path} holds no triangle mesh")
+    if not np.all(np.isfinite(mesh.vertices)):
+        raise ArgenError(f"model {path} has non-finite vertices")
+    mesh.apply_scale(1.0 / MM_PER_M)
+    return mesh
+
+
+def write_mesh(path: str | os.PathLike, mesh) -> None:
+    """Write a mesh given in metres as a binary BOP PLY in millimetres (with normals and colours)."""
+    m = mesh.copy()
+    m.apply_scale(MM_PER_M)
+    data = m.export(file_type="ply", encoding="binary", vertex_normal=True)
+    with atomic_path(path) as tmp:
+        Path(tmp).write_bytes(data)
+
+
+# -------------------------------------------------------------------------------------- images
+
+
+def write_png(path: str | os.PathLike, image: np.ndarray, compression: int = 1) -> None:
+    """Write an image atomically (RGB (H,W,3) uint8, or (H,W) uint8/uint16)."""
+    if image.ndim == 3:
+        image = cv2.cvtColor(image, cv2.COLOR_RGB2BGR)
+    with atomic_path(path) as tmp:
+        if not cv2.imwrite(str(tmp), image, [cv2.IMWRITE_PNG_COMPRESSION, compression]):
+            raise ArgenError(f"cannot write image {path}")
+
+
+def write_depth(path: str | os.PathLike, depth: np.ndarray, depth_scale: float) -> None:
+    """Write depth (H,W) float metres (0 = missing) as a uint16 PNG with ``depth_mm = v * depth_scale``."""
+    v = np.round(depth * (MM_PER_M / depth_scale))
+    if v.max(initial=0) > 65535:
+        raise ArgenError(f"depth beyond {65535 * depth_scale / MM_PER_M:.2f} m cannot be stored with "
+                         f"depth_scale {depth_scale}")
+    write_png(path, v.astype(np.uint16))
+
+
+def write_mask(path: str | os.PathLike, mask: np.ndarray) -> None:
+    """Write a boolean (H,W) mask as a 0/255 PNG."""
+    write_png(path, mask.astype(np.uint8) * 255)
+
+
+def _read_image(path: Path, flags: int) -> np.ndarray:
+    if not path.is_file():
+        raise ArgenError(f"image not found: {path}")
+    img = cv2.imread(str(path), flags)
+    if img is None:
+        raise ArgenError(f"cannot read image {path}: corrupt or not an image")
+    return img
+
+
+def read_rgb(path: str | os.PathLike) -> np.ndarray:
+    """Read an RGB image: (H,W,3) uint8."""
+    img = _read_image(Path(path), cv2.IMREAD_COLOR)
+    return cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
+
+
+def read_depth(path: str | os.PathLike, depth_scale: float) -> np.ndarray:
+    """Read a BOP depth PNG: (H,W) float32 metres, 0 = missing."""
+    img = _read_image(Path(path), cv2.IMREAD_ANYDEPTH)
+    return img.astype(np.float32) * np.float32(depth_scale / MM_PER_M)
+
+
+def read_mask(path: str | os.PathLike) -> np.ndarray:
+    """Read a mask PNG: (H,W) bool."""
+    return _read_image(Path(path), cv2.IMREAD_GRAYSCALE) > 127
+
+
+# ---------------------------------------------------------------------------------- scene JSONs
+
+
+def camera_entry(K: np.ndarray, depth_scale: float, T_cam_world: np.ndarray | None = None) -> dict:
+    """A ``scene_camera.json`` entry. K: (3,3) pixels; T_cam_world: (4,4), translation metres."""
+    e = {"cam_K": [float(v) for v in np.asarray(K).reshape(-1)], "depth_scale": float(depth_scale)}
+    if T_cam_world is not None:
+        e["cam_R_w2c"] = [float(v) for v in T_cam_world[:3, :3].reshape(-1)]
+        e["cam_t_w2c"] = [float(v) * MM_PER_M for v in T_cam_world[:3, 3]]
+    return e
+
+
+def gt_entry(obj_id: int, R: np.ndarray, t: np.ndarray) -> dict:
+    """A ``scene_gt.json`` instance entry. R: (3,3) model->camera; t: (3,) metres."""
+    return {
+        "cam_R_m2c": [float(v) for v in np.asarray(R).reshape(-1)],
+        "cam_t_m2c": [float(v) * MM_PER_M for v in np.asarray(t).reshape(-1)],
+        "obj_id": int(obj_id),
+    }
+
+
+def bbox_of(mask: np.ndarray) -> list[int]:
+    """BOP bounding box [x, y, w, h] of a boolean mask; [-1, -1, -1, -1] when empty."""
+    ys, xs = np.nonzero(mask)
+    if len(xs) == 0:
+        return [-1, -1, -1, -1]
+    x0, y0 = int(xs.min()), int(ys.min())
+    return [x0, y0, int(xs.max()) - x0 + 1, int(ys.max()) - y0 + 1]
+
+
+def gt_info_entry(mask_full: np.ndarray, mask_visib: np.ndarray, depth: np.ndarray) -> dict:
+    """A ``scene_gt_info.json`` entry from the full and visible masks and the written depth."""
+    px_all = int(mask_full.sum())
+    px_visib = int(mask_visib.sum())
+    return {
+        "bbox_obj": bbox_of(mask_full),
+        "bbox_visib": bbox_of(mask_visib),
+        "px_count_all": px_all,
+        "px_count_valid": int((mask_full & (depth > 0)).sum()),
+        "px_count_visib": px_visib,
+        "visib_fract": float(px_visib / px_all) if px_all else 0.0,
+    }
+
+
+@dataclass
+class FrameCamera:
+    """One frame's camera. K: (3,3) pixels; depth_scale: BOP; T_cam_world: (4,4) metres or None."""
+
+    K: np.ndarray
+    depth_scale: float
+    T_cam_world: np.ndarray | None = None
+
+
+@dataclass
+class FrameGT:
+    """One ground-truth instance. R: (3,3) model->camera; t: (3,) metres."""
+
+    obj_id: int
+    R: np.ndarray
+    t: np.ndarray
+
+
+def _scene_json(path: Path, what: str) -> dict:
+    data = read_json(path, what)
+    if not isinstance(data, dict):
+        raise ArgenError(f"{path} must hold an object keyed by image id")
+    return data
+
+
+def parse_scene_camera(data: dict, where: str) -> dict[int, FrameCamera]:
+    """Parse ``scene_camera.json`` content into ``{im_id: FrameCamera}`` (metres)."""
+    out = {}
+    for key, e in data.items():
+        try:
+            K = np.array(e["cam_K"], float).reshape(3, 3)
+            T = None
+            if "cam_R_w2c" in e and "cam_t_w2c" in e:
+                T = np.eye(4)
+                T[:3, :3] = np.array(e["cam_R_w2c"], float).reshape(3, 3)
+                T[:3, 3] = np.array(e["cam_t_w2c"], float).reshape(3) / MM_PER_M
+            out[int(key)] = FrameCamera(K, float(e.get("depth_scale", 1.0)), T)
+        except (KeyError, TypeError, ValueError) as exc:
+            raise ArgenError(f"{where}: image '{key}' is malformed ({exc.__class__.__name__}: {exc})") from exc
+    return out
+
+
+def parse_scene_gt(data: dict, where: str) -> dict[int, list[FrameGT]]:
+    """Parse ``scene_gt.json`` content into ``{im_id: [FrameGT, ...]}`` (metres)."""
+    out = {}
+    for key, items in data.items():
+        try:
+            out[int(key)] = [
+                FrameGT(int(g["obj_id"]), np.array(g["cam_R_m2c"], float).reshape(3, 3),
+                        np.array(g["cam_t_m2c"], float).reshape(3) / MM_PER_M)
+                for g in items
+            ]
+        except (KeyError, TypeError, ValueError) as exc:
+            raise ArgenError(f"{where}: image '{key}' is malformed ({exc.__class__.__name__}: {exc})") from exc
+    return out
+
+
+@dataclass
+class BopScene:
+    """The JSON side of one BOP scene, parsed (metres)."""
+
+    root: Path
+    split: str
+    scene_id: int
+    cameras: dict[int, FrameCamera]
+    gts: dict[int, list[FrameGT]]
+    gt_infos: dict[int, list[dict]]
+
+    @property
+    def im_ids(self) -> list[int]:
+        """Image ids that have both a camera and a ground truth entry, sorted."""
+        return sorted(set(self.cameras) & set(self.gts))
+
+    def rgb_path(self, im_id: int) -> Path:
+        d = scene_dir(self.root, self.split, self.scene_id)
+        for ext in (".png", ".jpg", ".jpeg", ".tif"):
+            for kind in ("rgb", "gray"):
+                p = d / kind / f"{im_id:06d}{ext}"
+                if p.is_file():
+                    return p
+        return d / "rgb" / f"{im_id:06d}.png"
+
+    def read_rgb(self, im_id: int) -> np.ndarray | None:
+        """(H,W,3) uint8, or None when the scene has no colour images."""
+        p = self.rgb_path(im_id)
+        return read_rgb(p) if p.is_file() else None
+
+    def read_depth(self, im_id: int) -> np.ndarray:
+        """(H,W) float32 metres."""
+        return read_depth(image_path(self.root, self.split, self.scene_id, im_id, "depth"),
+                          self.cameras[im_id].depth_scale)
+
+    def read_mask(self, im_id: int, gt_idx: int, visib: bool = True) -> np.ndarray | None:
+        """(H,W) bool, or None when the mask file does not exist."""
+        p = mask_path(self.root, self.split, self.scene_id, im_id, gt_idx, visib)
+        return read_mask(p) if p.is_file() else None
+
+
+def list_scenes(root: str | os.PathLike, split: str) -> list[int]:
+    """Scene ids of a split, sorted; an ArgenError when the split folder is missing or empty."""
+    d = Path(root) / split
+    if not d.is_dir():
+        raise ArgenError(f"split folder not found: {d}")
+    ids = sorted(int(p.name) for p in d.iterdir() if p.is_dir() and p.name.isdigit())
+    if not ids:
+        raise ArgenError(f"split folder {d} holds no scenes")
+    return ids
+
+
+def load_scene(root: str | os.PathLike, split: str, scene_id: int) -> BopScene:
+    """Read and check the JSON files of one scene."""
+    d = scene_dir(root, split, scene_id)
+    cam_p, gt_p, info_p = d / "scene_camera.json", d / "scene_gt.json", d / "scene_gt_info.json"
+    cameras = parse_scene_camera(_scene_json(cam_p, "scene_camera.json"), str(cam_p))
+    gts = parse_scene_gt(_scene_json(gt_p, "scene_gt.json"), str(gt_p))
+    infos = {int(k): v for k, v in _scene_json(info_p, "scene_gt_info.json").items()} if info_p.is_file() else {}
+    for im_id, g in gts.items():
+        if im_id not in cameras:
+            raise ArgenError(f"{gt_p}: image {im_id} has ground truth but no entry in scene_camera.json")
+        if infos and im_id in infos and len(infos[im_id]) != len(g):
+            raise ArgenError(f"{info_p}: image {im_id} lists {len(infos[im_id])} instances, scene_gt.json {len(g)}")
+    return BopScene(Path(root), split, scene_id, cameras, gts, infos)
+
+
+def scene_camera_json(cameras: dict[int, dict]) -> dict:
+    """Sorted, string-keyed dict for writing."""
+    return {str(k): cameras[k] for k in sorted(cameras)}

@@ -1,0 +1,309 @@
+"""Typed scene configuration, loaded from the YAML templates in ``templates/``.
+
+Every stage of the capture pipeline reads its parameters from one of these dataclasses. Units are
+metres and degrees as named in each field. Loading is strict: an unknown key, a wrong type or an
+out-of-range value is an :class:`ArgenError` naming the key.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import difflib
+import types
+import typing
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+from argen.errors import ArgenError
+
+TEMPLATES_DIR = Path(__file__).resolve().parent / "templates"
+
+Range = tuple[float, float]
+IntRange = tuple[int, int]
+
+
+@dataclass
+class CameraConfig:
+    """Pinhole intrinsics (OpenCV convention, pixels) and the shell camera views are sampled on."""
+
+    width: int = 640
+    height: int = 480
+    fx: float = 572.4114
+    fy: float = 573.57043
+    cx: float = 325.2611
+    cy: float = 242.04899
+    distance: Range = (0.6, 1.15)  # metres, camera centre to look-at point
+    elevation_deg: Range = (0.0, 90.0)  # above the board plane
+    azimuth_deg: Range = (0.0, 360.0)
+    look_at_jitter: float = 0.05  # metres, std of the look-at point around the board centre
+    roll_deg: float = 5.0  # std of the camera roll about its optical axis
+    z_near: float = 0.05
+    z_far: float = 6.0
+
+
+@dataclass
+class BoardConfig:
+    """A LineMOD-style capture board: a ring of square ArUco markers around a free central area."""
+
+    dictionary: str = "DICT_4X4_100"
+    markers_per_side: int = 8  # markers along each edge of the ring
+    marker_size: float = 0.05  # metres, black square side
+    marker_gap: float = 0.02  # metres between neighbouring markers
+    margin: float = 0.01  # metres of white border outside the ring
+    print_dpi: int = 300  # for `argen board`
+    texture_px_per_m: int = 2000  # resolution of the rendered board texture
+    thickness: float = 0.003  # metres
+
+
+@dataclass
+class PlacementConfig:
+    """Random placement of the objects on the board's free area."""
+
+    objects_per_frame: IntRange = (3, 4)  # distinct objects drawn per frame
+    instances_per_object: IntRange = (1, 1)  # copies of each drawn object (lchf: several)
+    max_tries: int = 200  # placement attempts per instance before giving up on it
+    min_gap: float = 0.005  # metres between footprints
+    stable_poses: int = 4  # most likely resting poses of each object to choose from
+
+
+@dataclass
+class ClutterConfig:
+    """Desk clutter: random boxes and cylinders on the table around the board."""
+
+    count: IntRange = (4, 8)
+    size: Range = (0.03, 0.15)  # metres, largest dimension
+    ring: Range = (0.3, 0.7)  # metres from the board centre
+    on_board: int = 0  # distractors placed on the board's free area too (occluders)
+
+
+@dataclass
+class SceneConfig:
+    """Table and lighting."""
+
+    table_size: float = 2.5  # metres, square
+    table_color: tuple[int, int, int] = (150, 120, 90)
+    ambient: float = 0.35
+    light_intensity: Range = (2.0, 4.0)  # directional light
+    point_light_intensity: Range = (3.0, 8.0)
+
+
+@dataclass
+class ARConfig:
+    """Acceptance of the marker-based camera pose (as the paper filtered frames by hand)."""
+
+    min_markers: int = 4
+    max_reproj_px: float = 2.0
+
+
+@dataclass
+class NoiseConfig:
+    """Kinect v1 style depth-sensor model (Nguyen et al. 2012 for the axial term)."""
+
+    enabled: bool = True
+    axial_a: float = 0.0012  # metres: sigma_z = a + b (z - z0)^2
+    axial_b: float = 0.0019  # 1/metre
+    axial_z0: float = 0.4  # metres
+    angle_term: bool = True  # sigma_z grows as theta^2 / (pi/2 - theta)^2 (incidence angle theta)
+    lateral_px: float = 0.5  # std of the lateral pixel shift
+    baseline: float = 0.075  # metres, projector-camera baseline for disparity
+    disparity_step_px: float = 0.125  # disparity quantisation step (1/8 px)
+    min_range: float = 0.4  # metres
+    max_range: float = 4.0
+    edge_threshold: float = 0.03  # metres: depth jump that counts as a discontinuity
+    edge_dropout: float = 0.6  # probability of losing a pixel next to a discontinuity
+    grazing_deg: float = 78.0  # incidence angles beyond this return nothing
+    random_dropout: float = 0.005  # share of pixels lost at random
+
+
+@dataclass
+class OutputConfig:
+    frames_per_scene: int = 1000  # BOP convention for PBR-style folders
+    split: str = "train_pbr"
+    depth_scale: float = 0.1  # BOP depth_scale: depth_mm = png_value * depth_scale
+
+
+@dataclass
+class TemplateConfig:
+    """A whole capture template (``templates/NAME.yaml``)."""
+
+    name: str = "linemod"
+    description: str = ""
+    seed: int = 0
+    objects: list[str] = field(default_factory=list)  # names or ids; empty = all available
+    camera: CameraConfig = field(default_factory=CameraConfig)
+    board: BoardConfig = field(default_factory=BoardConfig)
+    placement: PlacementConfig = field(default_factory=PlacementConfig)
+    clutter: ClutterConfig = field(default_factory=ClutterConfig)
+    scene: SceneConfig = field(default_factory=SceneConfig)
+    ar: ARConfig = field(default_factory=ARConfig)
+    noise: NoiseConfig = field(default_factory=NoiseConfig)
+    output: OutputConfig = field(default_factory=OutputConfig)
+
+
+# --------------------------------------------------------------------------------------- loading
+
+
+def available_templates() -> list[str]:
+    """Names of the built-in templates."""
+    return sorted(p.stem for p in TEMPLATES_DIR.glob("*.yaml"))
+
+
+def load_template(name_or_path: str | Path) -> TemplateConfig:
+    """Load a built-in template by name, or a YAML file by path, into a :class:`TemplateConfig`."""
+    path = Path(name_or_path)
+    if not path.suffix:
+        path = TEMPLATES_DIR / f"{name_or_path}.yaml"
+        if not path.is_file():
+            raise ArgenError(
+                f"unknown scene template '{name_or_path}' (available: {', '.join(available_templates())})"
+            )
+    if not path.is_file():
+        raise ArgenError(f"template file not found: {path}")
+    try:
+        data = yaml.safe_load(path.read_text())
+    except yaml.YAMLError as exc:
+        raise ArgenError(f"template {path} is not valid YAML: {str(exc).splitlines()[0]}") from exc
+    if data is None:
+        data = {}
+    return from_dict(TemplateConfig, data, where=path.name)
+
+
+def from_dict(cls: type, data: Any, where: str = "config") -> Any:
+    """Build dataclass ``cls`` from a mapping, strictly: unknown keys and wrong types are errors."""
+    if not isinstance(data, dict):
+        raise ArgenError(f"{where}: expected a mapping for {cls.__name__}, got {type(data).__name__}")
+    hints = typing.get_type_hints(cls)
+    fields = {f.name: f for f in dataclasses.fields(cls)}
+    kwargs = {}
+    for key, value in data.items():
+        if key not in fields:
+            close = difflib.get_close_matches(str(key), fields, n=1)
+            hint = f" (did you mean '{close[0]}'?)" if close else ""
+            raise ArgenError(f"{where}: unknown key '{key}'{hint}")
+        kwargs[key] = _coerce(hints[key], value, f"{where}: {key}")
+    obj = cls(**kwargs)
+    validate(obj, where)
+    return obj
+
+
+def _coerce(tp: Any, value: Any, where: str) -> Any:
+    origin = typing.get_origin(tp)
+    args = typing.get_args(tp)
+    if dataclasses.is_dataclass(tp):
+        return from_dict(tp, value, where)
+    if origin in (typing.Union, types.UnionType):
+        if value is None and type(None) in args:
+            return None
+        inner = [a for a in args if a is not type(None)]
+        return _coerce(inner[0], value, where)
+    if origin is tuple:
+        if not isinstance(value, (list, tuple)) or len(value) != len(args):
+            raise ArgenError(f"{where}: expected a list of {len(args)} values, got {value!r}")
+        return tuple(_coerce(a, v, where) for a, v in zip(args, value))
+    if origin is list:
+        if isinstance(value, str):
+            value = [v for v in value.split(",") if v]
+        if not isinstance(value, (list, tuple)):
+            raise ArgenError(f"{where}: expected a list, got {value!r}")
+        return [_coerce(args[0], v, where) for v in value]
+    if tp is bool:
+        if isinstance(value, bool):
+            return value
+        raise ArgenError(f"{where}: expected true or false, got {value!r}")
+    if tp is int:
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise ArgenError(f"{where}: expected an integer, got {value!r}")
+        return value
+    if tp is float:
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise ArgenError(f"{where}: expected a number, got {value!r}")
+        return float(value)
+    if tp is str:
+        if not isinstance(value, (str, int)):
+            raise ArgenError(f"{where}: expected a string, got {value!r}")
+        return str(value)
+    return value
+
+
+def _check(cond: bool, where: str, msg: str) -> None:
+    if not cond:
+        raise ArgenError(f"{where}: {msg}")
+
+
+def validate(obj: Any, where: str = "config") -> None:
+    """Range checks for the values that have a physical meaning."""
+    if isinstance(obj, CameraConfig):
+        _check(obj.width > 0 and obj.height > 0, where, "camera width and height must be positive")
+        _check(obj.fx > 0 and obj.fy > 0, where, "camera fx and fy must be positive")
+        _check(0 < obj.distance[0] <= obj.distance[1], where, "camera distance must be 0 < min <= max")
+        _check(0 <= obj.elevation_deg[0] <= obj.elevation_deg[1] <= 90, where,
+               "camera elevation_deg must lie in [0, 90] with min <= max")
+        _check(obj.azimuth_deg[0] <= obj.azimuth_deg[1], where, "camera azimuth_deg min must be <= max")
+        _check(0 < obj.z_near < obj.z_far, where, "camera z_near must be positive and below z_far")
+    elif isinstance(obj, BoardConfig):
+        _check(obj.markers_per_side >= 2, where, "board markers_per_side must be at least 2")
+        _check(obj.marker_size > 0 and obj.marker_gap >= 0 and obj.margin >= 0, where,
+               "board marker_size must be positive, marker_gap and margin non-negative")
+        _check(obj.print_dpi > 0 and obj.texture_px_per_m > 0, where, "board resolutions must be positive")
+    elif isinstance(obj, PlacementConfig):
+        _check(1 <= obj.objects_per_frame[0] <= obj.objects_per_frame[1], where,
+               "placement objects_per_frame must be 1 <= min <= max")
+        _check(1 <= obj.instances_per_object[0] <= obj.instances_per_object[1], where,
+               "placement instances_per_object must be 1 <= min <= max")
+        _check(obj.max_tries >= 1, where, "placement max_tries must be at least 1")
+        _check(obj.min_gap >= 0, where, "placement min_gap must be non-negative")
+        _check(obj.stable_poses >= 1, where, "placement stable_poses must be at least 1")
+    elif isinstance(obj, ClutterConfig):
+        _check(0 <= obj.count[0] <= obj.count[1], where, "clutter count must be 0 <= min <= max")
+        _check(0 < obj.size[0] <= obj.size[1], where, "clutter size must be 0 < min <= max")
+        _check(0 <= obj.ring[0] <= obj.ring[1], where, "clutter ring must be 0 <= min <= max")
+        _check(obj.on_board >= 0, where, "clutter on_board must be non-negative")
+    elif isinstance(obj, ARConfig):
+        _check(obj.min_markers >= 1, where, "ar min_markers must be at least 1")
+        _check(obj.max_reproj_px > 0, where, "ar max_reproj_px must be positive")
+    elif isinstance(obj, NoiseConfig):
+        _check(obj.axial_a >= 0 and obj.axial_b >= 0, where, "noise axial terms must be non-negative")
+        _check(obj.lateral_px >= 0, where, "noise lateral_px must be non-negative")
+        _check(obj.baseline > 0 and obj.disparity_step_px >= 0, where,
+               "noise baseline must be positive and disparity_step_px non-negative")
+        _check(0 <= obj.min_range < obj.max_range, where, "noise range must be 0 <= min_range < max_range")
+        for name in ("edge_dropout", "random_dropout"):
+            _check(0 <= getattr(obj, name) <= 1, where, f"noise {name} must lie in [0, 1]")
+        _check(0 < obj.grazing_deg <= 90, where, "noise grazing_deg must lie in (0, 90]")
+    elif isinstance(obj, OutputConfig):
+        _check(obj.frames_per_scene >= 1, where, "output frames_per_scene must be at least 1")
+        _check(obj.depth_scale > 0, where, "output depth_scale must be positive")
+
+
+def to_dict(cfg: Any) -> dict:
+    """Plain dict of a config dataclass (tuples as lists), for ``argen.json``."""
+
+    def conv(v: Any) -> Any:
+        if isinstance(v, tuple):
+            return [conv(x) for x in v]
+        if isinstance(v, list):
+            return [conv(x) for x in v]
+        if isinstance(v, dict):
+            return {k: conv(x) for k, x in v.items()}
+        return v
+
+    return conv(dataclasses.asdict(cfg))
+
+
+def override(cfg: TemplateConfig, dotted: dict[str, Any]) -> TemplateConfig:
+    """Return a copy of ``cfg`` with ``{"camera.distance": (0.5, 1.0), ...}`` applied and validated."""
+    data = to_dict(cfg)
+    for key, value in dotted.items():
+        node = data
+        parts = key.split(".")
+        for p in parts[:-1]:
+            if p not in node or not isinstance(node[p], dict):
+                raise ArgenError(f"unknown option '{key}'")
+            node = node[p]
+        if parts[-1] not in node:
+            raise ArgenError(f"unknown option '{key}'")
+        node[parts[-1]] = list(value) if isinstance(value, tuple) else value
+    return from_dict(TemplateConfig, data, where="options")
