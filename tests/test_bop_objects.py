@@ -1,0 +1,126 @@
+import json
+
+import numpy as np
+import pytest
+import trimesh
+
+from argen import bop
+from argen.errors import ArgenError
+from argen.objects import builtin_objects, control_points, load_models, write_models
+
+
+def test_builtin_objects_are_linemod_sized_and_deterministic():
+    a, b = builtin_objects(), builtin_objects()
+    assert len(a) >= 5
+    for o, o2 in zip(a, b):
+        assert np.array_equal(o.mesh.vertices, o2.mesh.vertices)
+        assert 0.08 < o.diameter < 0.35  # LineMOD diameters are 0.10 .. 0.29 m
+        assert o.mesh.visual.kind == "vertex"
+        # the box of models_info bounds the mesh exactly
+        assert np.allclose(o.mesh.bounds[0], o.info.bbox_min)
+        assert np.allclose(o.mesh.bounds[1] - o.mesh.bounds[0], o.info.bbox_size)
+
+
+def test_builtin_symmetries_map_the_surface_onto_itself():
+    for o in builtin_objects():
+        for T in o.info.symmetries_discrete:
+            v = o.mesh.vertices @ T[:3, :3].T + T[:3, 3]
+            d, _ = trimesh.proximity.ProximityQuery(o.mesh).vertex(v)
+            assert d.max() < 1e-6
+
+
+def test_control_points_order_and_centre():
+    cp = control_points(np.array([-1.0, -2.0, -3.0]), np.array([2.0, 4.0, 6.0]))
+    assert cp.shape == (9, 3)
+    assert np.allclose(cp[0], [-1, -2, -3]) and np.allclose(cp[1], [-1, -2, 3])
+    assert np.allclose(cp[2], [-1, 2, -3]) and np.allclose(cp[4], [1, -2, -3]) and np.allclose(cp[7], [1, 2, 3])
+    assert np.allclose(cp[8], 0)
+
+
+def test_models_round_trip_through_bop_in_millimetres(tmp_path):
+    objs = builtin_objects(["mug", "eggcrate"])
+    write_models(tmp_path / "models", objs)
+    info = json.loads((tmp_path / "models" / "models_info.json").read_text())
+    assert info["2"]["diameter"] == pytest.approx(objs[0].diameter * 1000)  # mm on disk
+    assert "symmetries_discrete" in info["6"]
+    back = load_models(tmp_path / "models")
+    assert [o.name for o in back] == ["mug", "eggcrate"]
+    for o, b in zip(objs, back):
+        assert np.allclose(o.mesh.vertices, b.mesh.vertices, atol=1e-6)
+        assert b.diameter == pytest.approx(o.diameter)
+        assert len(b.info.symmetries_discrete) == len(o.info.symmetries_discrete)
+
+
+def test_linemod_models_load_in_metres_with_names(lm_models):
+    objs = load_models(lm_models, ["ape", "10"])
+    assert [o.name for o in objs] == ["ape", "eggbox"]
+    ape, egg = objs
+    assert ape.diameter == pytest.approx(0.102099)
+    assert egg.symmetric and not ape.symmetric
+    assert np.max(ape.mesh.extents) == pytest.approx(np.max(ape.info.bbox_size), rel=0.05)
+
+
+def _models_dir(tmp_path, objs=None):
+    d = tmp_path / "models"
+    write_models(d, objs or builtin_objects(["mug"]))
+    return d
+
+
+def test_bad_models_folders_are_clear_errors(tmp_path):
+    with pytest.raises(ArgenError, match="models folder not found"):
+        load_models(tmp_path / "missing")
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(ArgenError, match="holds no obj_XXXXXX.ply"):
+        load_models(tmp_path / "empty")
+    d = _models_dir(tmp_path)
+    (d / "obj_000002.ply").write_bytes(b"ply\nformat binary_little_endian 1.0\nelement vertex 10\n")
+    with pytest.raises(ArgenError, match="corrupt|holds no triangle mesh"):
+        load_models(d)
+    (d / "obj_000002.ply").write_bytes(b"")
+    with pytest.raises(ArgenError, match="empty"):
+        load_models(d)
+
+
+def test_models_info_missing_an_object(tmp_path):
+    d = _models_dir(tmp_path, builtin_objects(["mug", "duck"]))
+    info = json.loads((d / "models_info.json").read_text())
+    del info["4"]
+    (d / "models_info.json").write_text(json.dumps(info))
+    with pytest.raises(ArgenError, match="no entry for object.*4"):
+        load_models(d)
+
+
+def test_model_in_metres_is_detected(tmp_path):
+    d = _models_dir(tmp_path)
+    mesh = builtin_objects(["mug"])[0].mesh.copy()
+    mesh.apply_scale(0.001)  # write_mesh multiplies by 1000: the file then holds metres
+    bop.write_mesh(d / "obj_000002.ply", mesh)
+    with pytest.raises(ArgenError, match="metres"):
+        load_models(d)
+
+
+def test_unknown_object_name(tmp_path):
+    with pytest.raises(ArgenError, match="unknown object 'teapot'.*mug"):
+        builtin_objects(["teapot"])
+
+
+def test_depth_png_round_trip(tmp_path):
+    depth = np.random.default_rng(0).uniform(0.4, 3.0, (12, 16)).astype(np.float32)
+    depth[0, 0] = 0
+    bop.write_depth(tmp_path / "d.png", depth, 0.1)
+    back = bop.read_depth(tmp_path / "d.png", 0.1)
+    assert back[0, 0] == 0 and np.abs(back - depth).max() <= 0.05e-3 + 1e-7
+    with pytest.raises(ArgenError, match="cannot be stored"):
+        bop.write_depth(tmp_path / "far.png", np.full((2, 2), 7.0, np.float32), 0.1)
+
+
+def test_corrupt_scene_json_is_a_clear_error(tmp_path):
+    d = bop.scene_dir(tmp_path, "test", 0)
+    d.mkdir(parents=True)
+    (d / "scene_camera.json").write_text("{ not json")
+    (d / "scene_gt.json").write_text("{}")
+    with pytest.raises(ArgenError, match="not valid JSON"):
+        bop.load_scene(tmp_path, "test", 0)
+    (d / "scene_camera.json").write_text('{"0": {"cam_K": [1, 2]}}')
+    with pytest.raises(ArgenError, match="malformed"):
+        bop.load_scene(tmp_path, "test", 0)
