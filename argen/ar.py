@@ -92,17 +92,29 @@ def estimate_board_pose(rgb: np.ndarray, board: Board, K: np.ndarray, cfg: ARCon
     reproj = float(np.sqrt(np.mean(np.sum((proj - img) ** 2, axis=1))))
     T = _pose_matrix(rvec, tvec)
     est = PoseEstimate(T, n, id_list, reproj, accepted=False)
-    corners_cam = board.marker_corners.reshape(-1, 3) @ T[:3, :3].T + T[:3, 3]
-    normal_cam = T[:3, 2]
-    if (corners_cam[:, 2] <= 0).any():
-        est.reason = "pose puts the board behind the camera"
-    elif normal_cam @ -T[:3, 3] <= 0:
-        est.reason = "pose shows the board from below"
+    problem = implausible_pose(T, board)
+    if problem:
+        est.reason = problem
     elif reproj > cfg.max_reproj_px:
         est.reason = f"reprojection error {reproj:.2f} px above {cfg.max_reproj_px:g} px ({n} markers)"
     else:
         est.accepted = True
     return est
+
+
+def implausible_pose(T_cam_board: np.ndarray, board: Board) -> str:
+    """Why a board pose cannot be what a camera saw ("" when it can).
+
+    T_cam_board: (4, 4), metres. The board must lie in front of the camera (every marker corner at
+    z > 0) and show its top side (the board normal pointing towards the camera centre).
+    """
+    T = np.asarray(T_cam_board, np.float64)
+    corners_cam = board.marker_corners.reshape(-1, 3) @ T[:3, :3].T + T[:3, 3]
+    if (corners_cam[:, 2] <= 0).any():
+        return "pose puts the board behind the camera"
+    if T[:3, 2] @ -T[:3, 3] <= 0:  # normal in camera frame . (board origin -> camera centre)
+        return "pose shows the board from below"
+    return ""
 
 
 def pose_error(T_est: np.ndarray, T_true: np.ndarray) -> tuple[float, float]:

@@ -8,7 +8,7 @@ import cv2
 import numpy as np
 import pytest
 
-from argen.ar import estimate_board_pose, pose_error
+from argen.ar import estimate_board_pose, implausible_pose, pose_error
 from argen.board import Board
 from argen.camera import look_at
 from argen.config import ARConfig, BoardConfig
@@ -140,3 +140,19 @@ def test_pose_error_known_offsets():
     assert rot == pytest.approx(7.0, abs=1e-9) and trans == pytest.approx(0.005, abs=1e-12)
     assert pose_error(T, T) == pytest.approx((0.0, 0.0), abs=1e-6)
     assert pose_error(T2, T) == pytest.approx(pose_error(T, T2))
+
+
+def test_implausible_poses_are_named(board):
+    T = view(0.8, 50, 20, 3)
+    assert implausible_pose(T, board) == ""
+    below = T.copy()
+    below[:3, :3] = T[:3, :3] @ np.diag([1.0, -1.0, -1.0])  # board turned over about its x axis
+    assert "below" in implausible_pose(below, board)
+    behind = T.copy()
+    behind[:3, 3] *= -1  # the mirror image of the board through the camera centre
+    behind[:3, :3] = T[:3, :3] @ np.diag([1.0, -1.0, -1.0])
+    assert "behind" in implausible_pose(behind, board)
+    straddling = T.copy()
+    straddling[:3, 3] = [0.0, 0.0, 0.1]  # board plane along the optical axis, centre 10 cm ahead:
+    straddling[:3, :3] = cv2.Rodrigues(np.array([np.pi / 2, 0, 0]))[0]  # its far half is behind the camera
+    assert "behind" in implausible_pose(straddling, board)
