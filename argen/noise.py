@@ -1,0 +1,267 @@
+"""Kinect v1 style depth-sensor model: lateral jitter, axial noise, disparity quantisation, holes.
+
+The axial model is Nguyen, Izadi & Lovell (2012), "Modeling Kinect Sensor Noise for Improved 3D
+Reconstruction and Tracking":
+
+    sigma_z(z, theta) = a + b (z - z0)^2 + 0.0001 / sqrt(z) * theta^2 / (pi/2 - theta)^2   [metres]
+
+with a = 0.0012 m, b = 0.0019 1/m, z0 = 0.4 m (``NoiseConfig``) and theta the incidence angle.
+Nguyen et al. measured this on real Kinect depth, so sigma_z is the *total* axial noise, disparity
+quantisation included. :func:`apply_noise` therefore draws its Gaussian part with the reduced
+
+    sigma_gauss = sqrt(max(sigma_z^2 - q(z)^2 / 12, 0)),   q(z) = z^2 * step / (fx * baseline),
+
+where q(z) is the depth step between neighbouring disparity levels at depth z and q^2/12 the
+variance of rounding to them, so that Gaussian + quantisation together have the model's sigma_z.
+
+All depths are metres, angles radians; a depth of 0 means "no measurement" on input and output.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from argen.config import NoiseConfig
+
+# Coefficient of Nguyen et al.'s incidence-angle term, metres^1.5 (0.0001 / sqrt(z) metres).
+ANGLE_COEF = 0.0001
+
+_RAY_CACHE: dict[tuple, np.ndarray] = {}
+
+
+def axial_sigma(z: np.ndarray | float, theta: np.ndarray | float, cfg: NoiseConfig) -> np.ndarray:
+    """Total axial noise std of the sensor model (Nguyen et al. 2012).
+
+    z: (...) depth, metres (> 0); theta: (...) incidence angle, radians, broadcastable with z
+    (ignored unless ``cfg.angle_term``). Returns (...) sigma_z, metres, in the dtype of z
+    (float64 for Python scalars). Angles are clipped just below pi/2 so the result stays finite.
+    """
+    z = np.asarray(z)
+    if not np.issubdtype(z.dtype, np.floating):
+        z = z.astype(np.float64)
+    dz = z - z.dtype.type(cfg.axial_z0)
+    sigma = z.dtype.type(cfg.axial_a) + z.dtype.type(cfg.axial_b) * dz * dz
+    if cfg.angle_term:
+        t = np.clip(np.asarray(theta, dtype=z.dtype), 0.0, np.pi / 2 - 1e-3)
+        ratio = t / (z.dtype.type(np.pi / 2) - t)
+        sigma = sigma + z.dtype.type(ANGLE_COEF) / np.sqrt(np.maximum(z, z.dtype.type(1e-6))) * ratio * ratio
+    return sigma
+
+
+def _unit_z_rays(h: int, w: int, K: np.ndarray) -> np.ndarray:
+    """(H, W, 3) float32 rays K^-1 [u, v, 1] (z = 1) through the pixel centres; cached, read-only."""
+    key = (h, w, tuple(np.asarray(K, dtype=np.float64).ravel().tolist()))
+    rays = _RAY_CACHE.get(key)
+    if rays is None:
+        Kinv = np.linalg.inv(np.asarray(K, dtype=np.float64))
+        u, v = np.meshgrid(np.arange(w, dtype=np.float64), np.arange(h, dtype=np.float64))
+        pix = np.stack([u, v, np.ones_like(u)], axis=-1)
+        rays = (pix @ Kinv.T).astype(np.float32)
+        rays.flags.writeable = False
+        if len(_RAY_CACHE) > 8:
+            _RAY_CACHE.clear()
+        _RAY_CACHE[key] = rays
+    return rays
+
+
+def _check_inputs(depth: np.ndarray, K: np.ndarray) -> None:
+    if depth.ndim != 2:
+        raise ValueError(f"depth must be (H, W), got shape {depth.shape}")
+    if np.shape(K) != (3, 3):
+        raise ValueError(f"K must be (3, 3), got shape {np.shape(K)}")
+
+
+def _one_sided_diff(w: np.ndarray, valid: np.ndarray, axis: int) -> tuple[np.ndarray, np.ndarray]:
+    """Finite difference of ``w`` along ``axis`` (1 = u, 0 = v), from the side with the smaller jump.
+
+    Taking the smoother of the forward and backward difference keeps normals right next to depth
+    discontinuities (the neighbour on the same surface is used). Returns ((H, W), ok (H, W)).
+    """
+    n = w.shape[axis]
+    lo = [slice(None)] * 2
+    hi = [slice(None)] * 2
+    lo[axis], hi[axis] = slice(0, n - 1), slice(1, n)
+    lo, hi = tuple(lo), tuple(hi)
+    diff = w[hi] - w[lo]  # w[i+1] - w[i], stored at i
+    ok = valid[hi] & valid[lo]
+    pad_shape = list(w.shape)
+    pad_shape[axis] = 1
+    zero = np.zeros(pad_shape, dtype=w.dtype)
+    no = np.zeros(pad_shape, dtype=bool)
+    fwd, bwd = np.concatenate([diff, zero], axis), np.concatenate([zero, diff], axis)
+    ok_f, ok_b = np.concatenate([ok, no], axis), np.concatenate([no, ok], axis)
+    use_f = ok_f & (~ok_b | (np.abs(fwd) <= np.abs(bwd)))
+    return np.where(use_f, fwd, bwd), ok_f | ok_b
+
+
+def _normal_terms(z: np.ndarray, K: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Unnormalised away-facing normals m (3, H, W) and a validity mask (H, W) from depth z (H, W).
+
+    Uses inverse depth w = 1/z, which is affine in (u, v) on any plane n . P + c = 0. For the plane
+    through a pixel's back-projected point and its two chosen neighbours (one along u, one along v)
+    its finite differences w_u, w_v are exact, and the plane normal is K^T (w_u, w_v, w - u w_u -
+    v w_v) up to scale; this equals the cross product of the back-projected point differences, at
+    scalar cost. m . K^-1 [u, v, 1] = w > 0, i.e. m points away from the camera.
+    """
+    h, w_ = z.shape
+    valid = z > 0
+    w = np.where(valid, np.float32(1.0) / np.where(valid, z, np.float32(1.0)), np.float32(0.0))
+    wu, ok_u = _one_sided_diff(w, valid, axis=1)
+    wv, ok_v = _one_sided_diff(w, valid, axis=0)
+    u = np.arange(w_, dtype=np.float32)[None, :]
+    v = np.arange(h, dtype=np.float32)[:, None]
+    g = (wu, wv, w - u * wu - v * wv)
+    Kt = np.asarray(K, dtype=np.float32).T
+    m = [Kt[i, 0] * g[0] + Kt[i, 1] * g[1] + Kt[i, 2] * g[2] if Kt[i].any() else np.zeros_like(w)
+         for i in range(3)]
+    return np.stack(m), valid & ok_u & ok_v
+
+
+def normals_from_depth(depth: np.ndarray, K: np.ndarray) -> np.ndarray:
+    """Camera-frame unit surface normals of a depth map, oriented toward the camera.
+
+    depth: (H, W) metres, 0 = no measurement; K: (3, 3) pixels. Each pixel's normal is that of the
+    plane through its back-projected point P = z K^-1 [u, v, 1] and one neighbour along u and one
+    along v (the cross product of the finite differences of P), each neighbour taken on the side
+    (forward or backward) with the smaller jump, so pixels next to a discontinuity get the normal
+    of their own surface; computed exactly via inverse depth (see ``_normal_terms``). Returns
+    (H, W, 3) float32, unit length with n . P < 0, and zeros where the pixel, or both of its
+    neighbours along u or both along v, have no depth.
+    """
+    depth = np.asarray(depth)
+    _check_inputs(depth, K)
+    z = np.where(np.isfinite(depth) & (depth > 0), depth, 0).astype(np.float32)
+    m, good = _normal_terms(z, K)
+    norm = np.sqrt(m[0] * m[0] + m[1] * m[1] + m[2] * m[2])
+    good &= norm > 0
+    scale = np.where(good, np.float32(-1.0) / np.where(good, norm, np.float32(1.0)), np.float32(0.0))
+    return np.moveaxis(m * scale, 0, -1).astype(np.float32)
+
+
+def _ray_norm(h: int, w: int, K: np.ndarray) -> np.ndarray:
+    """(H, W) float32 lengths of the rays K^-1 [u, v, 1] (cached)."""
+    rays = _unit_z_rays(h, w, K)
+    key = ("norm", h, w, tuple(np.asarray(K, dtype=np.float64).ravel().tolist()))
+    r = _RAY_CACHE.get(key)
+    if r is None:
+        r = np.sqrt(np.einsum("hwc,hwc->hw", rays, rays))
+        r.flags.writeable = False
+        _RAY_CACHE[key] = r
+    return r
+
+
+def incidence_angle(depth: np.ndarray, K: np.ndarray, normals: np.ndarray) -> np.ndarray:
+    """Angle between each pixel's viewing ray and its surface normal (0 = surface faces the camera).
+
+    depth: (H, W) metres, 0 = no measurement; K: (3, 3) pixels; normals: (H, W, 3) camera-frame
+    unit normals as from :func:`normals_from_depth`. Returns (H, W) float32 radians in [0, pi/2]
+    (normals facing away count as pi/2); 0 where there is no depth or no normal (zero vector).
+    """
+    depth = np.asarray(depth)
+    _check_inputs(depth, K)
+    normals = np.asarray(normals, dtype=np.float32)
+    rays = _unit_z_rays(*depth.shape, K)
+    cos = -np.einsum("hwc,hwc->hw", normals, rays) / _ray_norm(*depth.shape, K)
+    known = (depth > 0) & (np.einsum("hwc,hwc->hw", normals, normals) > 0.5)
+    return np.where(known, np.arccos(np.clip(cos, 0.0, 1.0)), 0.0).astype(np.float32)
+
+
+def _incidence_from_depth(z: np.ndarray, K: np.ndarray) -> np.ndarray:
+    """Same as ``incidence_angle(z, K, normals_from_depth(z, K))`` without the (H, W, 3) arrays.
+
+    z: (H, W) float32 metres, 0 = none. With m from ``_normal_terms``, cos(theta) = w / (|m| |r|).
+    """
+    m, good = _normal_terms(z, K)
+    norm = np.sqrt(m[0] * m[0] + m[1] * m[1] + m[2] * m[2]) * _ray_norm(*z.shape, K)
+    good &= norm > 0
+    w = np.where(good, np.float32(1.0) / np.where(good, z, np.float32(1.0)), np.float32(0.0))
+    cos = w / np.where(good, norm, np.float32(1.0))
+    return np.where(good, np.arccos(np.clip(cos, 0.0, 1.0)), np.float32(0.0)).astype(np.float32)
+
+
+def _lateral_index(h: int, w: int, std_px: float, rng: np.random.Generator) -> np.ndarray:
+    """(H, W) flat source indices: each pixel reads its nearest neighbour at a Gaussian-jittered position."""
+    shift = np.rint(rng.standard_normal((2, h, w), dtype=np.float32) * np.float32(std_px)).astype(np.intp)
+    rows = np.clip(np.arange(h, dtype=np.intp)[:, None] + shift[0], 0, h - 1)
+    cols = np.clip(np.arange(w, dtype=np.intp)[None, :] + shift[1], 0, w - 1)
+    return rows * w + cols
+
+
+def _discontinuities(z: np.ndarray, threshold: float) -> np.ndarray:
+    """(H, W) bool: pixels on either side of a jump > ``threshold`` metres to a 4-neighbour (both measured)."""
+    valid = z > 0
+    edge = np.zeros(z.shape, dtype=bool)
+    jh = (np.abs(z[:, 1:] - z[:, :-1]) > threshold) & valid[:, 1:] & valid[:, :-1]
+    jv = (np.abs(z[1:, :] - z[:-1, :]) > threshold) & valid[1:, :] & valid[:-1, :]
+    edge[:, 1:] |= jh
+    edge[:, :-1] |= jh
+    edge[1:, :] |= jv
+    edge[:-1, :] |= jv
+    return edge
+
+
+def apply_noise(depth: np.ndarray, K: np.ndarray, cfg: NoiseConfig, rng: np.random.Generator) -> np.ndarray:
+    """Turn a clean rendered depth map into a Kinect-like measurement.
+
+    depth: (H, W) float metres, 0 (or non-finite) = no measurement; K: (3, 3) pixels (fx = K[0, 0]
+    is used for disparity); rng: the frame's generator. Returns (H, W) float32 metres, 0 = missing.
+    With ``cfg.enabled`` False it returns an unchanged float32 copy and draws nothing.
+
+    Steps, all vectorised:
+      1. incidence angles from the clean depth (:func:`normals_from_depth`, :func:`incidence_angle`);
+      2. lateral noise: every pixel takes the nearest pixel at its position jittered by
+         N(0, lateral_px) in u and v (nearest neighbour, so edges stay sharp but become ragged);
+      3. axial noise N(0, sigma_gauss) with sigma_gauss reduced from :func:`axial_sigma` by the
+         quantisation variance (module docstring), so the total matches Nguyen et al.;
+      4. disparity quantisation: d = fx b / z rounded to ``disparity_step_px``, z = fx b / d;
+      5. holes: pixels on either side of a jump > ``edge_threshold`` (after step 2) are lost with
+         probability ``edge_dropout``; incidence angles > ``grazing_deg`` are lost; any pixel is lost
+         with probability ``random_dropout``; measurements outside [min_range, max_range] are lost.
+    """
+    depth = np.asarray(depth)
+    _check_inputs(depth, K)
+    if not cfg.enabled:
+        return depth.astype(np.float32, copy=True)
+    h, w = depth.shape
+    z = np.where(np.isfinite(depth) & (depth > 0), depth, 0).astype(np.float32)
+    f32 = np.float32
+
+    use_grazing = cfg.grazing_deg < 90.0
+    theta = None
+    if cfg.angle_term or use_grazing:
+        theta = _incidence_from_depth(z, K)
+
+    if cfg.lateral_px > 0:
+        idx = _lateral_index(h, w, cfg.lateral_px, rng)
+        z = z.ravel()[idx]
+        if theta is not None:
+            theta = theta.ravel()[idx]
+    valid = z > 0
+
+    fb = f32(float(K[0][0]) * cfg.baseline)  # pixels * metres
+    step = f32(cfg.disparity_step_px)
+    sigma = axial_sigma(z, theta if cfg.angle_term else f32(0.0), cfg)
+    if step > 0:
+        q = z * z * (step / fb)  # metres between neighbouring disparity levels at depth z
+        sigma = np.sqrt(np.maximum(sigma * sigma - q * q / f32(12.0), f32(0.0)))
+    noisy = z + rng.standard_normal((h, w), dtype=np.float32) * sigma
+
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+        if step > 0:
+            d = np.rint(fb / noisy / step) * step
+            noisy = np.where(d > 0, fb / d, f32(0.0))
+
+    lost = ~valid | ~np.isfinite(noisy) | (noisy <= 0) | (noisy < cfg.min_range) | (noisy > cfg.max_range)
+    if use_grazing:
+        lost |= theta > f32(np.deg2rad(cfg.grazing_deg))
+    p_rand, p_edge = cfg.random_dropout, cfg.edge_dropout
+    if p_rand > 0 or p_edge > 0:
+        # One uniform draw covers both independent dropouts: u < p_rand loses any pixel, and an edge
+        # pixel is also lost for u in [p_rand, p_rand + (1 - p_rand) p_edge), i.e. overall with
+        # probability 1 - (1 - p_rand)(1 - p_edge).
+        u = rng.random((h, w), dtype=np.float32)
+        lost |= u < f32(p_rand)
+        if p_edge > 0:
+            lost |= _discontinuities(z, cfg.edge_threshold) & (u < f32(p_rand + (1.0 - p_rand) * p_edge))
+    noisy[lost] = 0.0
+    return noisy.astype(np.float32, copy=False)
