@@ -20,13 +20,14 @@ All depths are metres, angles radians; a depth of 0 means "no measurement" on in
 from __future__ import annotations
 
 import numpy as np
+from scipy.special import ndtr
 
 from argen.config import NoiseConfig
 
 # Coefficient of Nguyen et al.'s incidence-angle term, metres^1.5 (0.0001 / sqrt(z) metres).
 ANGLE_COEF = 0.0001
 
-_RAY_CACHE: dict[tuple, np.ndarray] = {}
+_CACHE: dict[tuple, object] = {}  # rays and lateral tables per (image size, K / std)
 
 
 def axial_sigma(z: np.ndarray | float, theta: np.ndarray | float, cfg: NoiseConfig) -> np.ndarray:
@@ -51,16 +52,16 @@ def axial_sigma(z: np.ndarray | float, theta: np.ndarray | float, cfg: NoiseConf
 def _unit_z_rays(h: int, w: int, K: np.ndarray) -> np.ndarray:
     """(H, W, 3) float32 rays K^-1 [u, v, 1] (z = 1) through the pixel centres; cached, read-only."""
     key = (h, w, tuple(np.asarray(K, dtype=np.float64).ravel().tolist()))
-    rays = _RAY_CACHE.get(key)
+    rays = _CACHE.get(key)
     if rays is None:
         Kinv = np.linalg.inv(np.asarray(K, dtype=np.float64))
         u, v = np.meshgrid(np.arange(w, dtype=np.float64), np.arange(h, dtype=np.float64))
         pix = np.stack([u, v, np.ones_like(u)], axis=-1)
         rays = (pix @ Kinv.T).astype(np.float32)
         rays.flags.writeable = False
-        if len(_RAY_CACHE) > 8:
-            _RAY_CACHE.clear()
-        _RAY_CACHE[key] = rays
+        if len(_CACHE) > 8:
+            _CACHE.clear()
+        _CACHE[key] = rays
     return rays
 
 
@@ -142,11 +143,11 @@ def _ray_norm(h: int, w: int, K: np.ndarray) -> np.ndarray:
     """(H, W) float32 lengths of the rays K^-1 [u, v, 1] (cached)."""
     rays = _unit_z_rays(h, w, K)
     key = ("norm", h, w, tuple(np.asarray(K, dtype=np.float64).ravel().tolist()))
-    r = _RAY_CACHE.get(key)
+    r = _CACHE.get(key)
     if r is None:
         r = np.sqrt(np.einsum("hwc,hwc->hw", rays, rays))
         r.flags.writeable = False
-        _RAY_CACHE[key] = r
+        _CACHE[key] = r
     return r
 
 
@@ -179,12 +180,53 @@ def _incidence_from_depth(z: np.ndarray, K: np.ndarray) -> np.ndarray:
     return np.where(good, np.arccos(np.clip(cos, 0.0, 1.0)), np.float32(0.0)).astype(np.float32)
 
 
-def _lateral_index(h: int, w: int, std_px: float, rng: np.random.Generator) -> np.ndarray:
-    """(H, W) flat source indices: each pixel reads its nearest neighbour at a Gaussian-jittered position."""
-    shift = np.rint(rng.standard_normal((2, h, w), dtype=np.float32) * np.float32(std_px)).astype(np.intp)
-    rows = np.clip(np.arange(h, dtype=np.intp)[:, None] + shift[0], 0, h - 1)
-    cols = np.clip(np.arange(w, dtype=np.intp)[None, :] + shift[1], 0, w - 1)
-    return rows * w + cols
+_LATERAL_LEVELS = 1 << 16  # probability resolution of the discrete lateral shift
+
+
+def _lateral_table(std_px: float, h: int, w: int) -> tuple[int, np.ndarray, np.ndarray]:
+    """Cached lookup for :func:`_lateral_resample`: (pad, offsets (2^16,) int32, base (H, W) int32).
+
+    The shift (dv, du) has independent rounded-Gaussian components, P(k) = Phi((k + 1/2) / std) -
+    Phi((k - 1/2) / std); the joint distribution is tabulated at 2^-16 probability resolution (so
+    shifts rarer than that, e.g. 3 px at std 0.5, are left out) as flat offsets dv * Wp + du into the
+    image padded by ``pad`` pixels (width Wp); ``base`` holds each pixel's own padded flat index.
+    """
+    key = ("lateral", float(std_px), h, w)
+    hit = _CACHE.get(key)
+    if hit is None:
+        pad = int(np.ceil(6.0 * std_px)) + 1
+        k = np.arange(-pad, pad + 1)
+        p1 = np.diff(ndtr((np.arange(-pad, pad + 2) - 0.5) / std_px))
+        p2 = (p1[:, None] * p1[None, :]).ravel()
+        cdf = np.cumsum(p2) / p2.sum()
+        pick = np.searchsorted(cdf * _LATERAL_LEVELS, np.arange(_LATERAL_LEVELS) + 0.5)
+        wp = w + 2 * pad
+        dv, du = np.meshgrid(k, k, indexing="ij")
+        offsets = (dv * wp + du).ravel()[np.minimum(pick, p2.size - 1)].astype(np.int32)
+        rows = np.arange(pad, h + pad, dtype=np.int32)[:, None]
+        base = rows * wp + np.arange(pad, w + pad, dtype=np.int32)[None, :]
+        for a in (offsets, base):
+            a.flags.writeable = False
+        hit = (pad, offsets, base)
+        if len(_CACHE) > 8:
+            _CACHE.clear()
+        _CACHE[key] = hit
+    return hit
+
+
+def _lateral_index(h: int, w: int, std_px: float, rng: np.random.Generator) -> tuple[int, np.ndarray]:
+    """Source pixels of the lateral jitter: (pad, (H, W) int32 flat indices into the edge-padded image).
+
+    Each pixel reads its nearest neighbour at its position shifted by a rounded N(0, std_px) in u
+    and in v (see ``_lateral_table``); padding by edge replication clamps shifts at the border.
+    """
+    pad, offsets, base = _lateral_table(std_px, h, w)
+    return pad, base + offsets[rng.integers(0, _LATERAL_LEVELS, (h, w), dtype=np.uint16)]
+
+
+def _resample(a: np.ndarray, pad: int, idx: np.ndarray) -> np.ndarray:
+    """a (H, W) read at the flat indices ``idx`` of its edge-padded copy; (H, W), dtype of a."""
+    return np.take(np.pad(a, pad, mode="edge").ravel(), idx)
 
 
 def _discontinuities(z: np.ndarray, threshold: float) -> np.ndarray:
@@ -208,13 +250,16 @@ def apply_noise(depth: np.ndarray, K: np.ndarray, cfg: NoiseConfig, rng: np.rand
     With ``cfg.enabled`` False it returns an unchanged float32 copy and draws nothing.
 
     Steps, all vectorised:
-      1. incidence angles from the clean depth (:func:`normals_from_depth`, :func:`incidence_angle`);
-      2. lateral noise: every pixel takes the nearest pixel at its position jittered by
-         N(0, lateral_px) in u and v (nearest neighbour, so edges stay sharp but become ragged);
+      1. incidence angles from the clean depth (:func:`normals_from_depth`, :func:`incidence_angle`;
+         0 where a pixel has no normal, e.g. an isolated pixel);
+      2. lateral noise: every pixel takes the value of the pixel nearest to its position jittered
+         by N(0, lateral_px) in u and in v (i.e. a rounded-Gaussian shift, clamped at the border;
+         nearest neighbour, so edges stay sharp but become ragged); angles move along;
       3. axial noise N(0, sigma_gauss) with sigma_gauss reduced from :func:`axial_sigma` by the
          quantisation variance (module docstring), so the total matches Nguyen et al.;
       4. disparity quantisation: d = fx b / z rounded to ``disparity_step_px``, z = fx b / d;
-      5. holes: pixels on either side of a jump > ``edge_threshold`` (after step 2) are lost with
+      5. holes: pixels on either side of a jump > ``edge_threshold`` between two measured
+         4-neighbours (after step 2; a border to missing depth is not a jump) are lost with
          probability ``edge_dropout``; incidence angles > ``grazing_deg`` are lost; any pixel is lost
          with probability ``random_dropout``; measurements outside [min_range, max_range] are lost.
     """
@@ -232,10 +277,10 @@ def apply_noise(depth: np.ndarray, K: np.ndarray, cfg: NoiseConfig, rng: np.rand
         theta = _incidence_from_depth(z, K)
 
     if cfg.lateral_px > 0:
-        idx = _lateral_index(h, w, cfg.lateral_px, rng)
-        z = z.ravel()[idx]
+        pad, idx = _lateral_index(h, w, cfg.lateral_px, rng)
+        z = _resample(z, pad, idx)
         if theta is not None:
-            theta = theta.ravel()[idx]
+            theta = _resample(theta, pad, idx)
     valid = z > 0
 
     fb = f32(float(K[0][0]) * cfg.baseline)  # pixels * metres

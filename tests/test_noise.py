@@ -146,11 +146,34 @@ def test_grazing_plane_returns_nothing():
     assert np.all(apply_noise(mild, Kc, cfg, np.random.default_rng(3)) > 0)
 
 
+def test_lateral_shift_is_nearest_neighbour_with_gaussian_jitter():
+    """Only lateral noise on: every output value is some input pixel's, displaced by a rounded N(0, 0.5)."""
+    cfg = NoiseConfig(axial_a=0.0, axial_b=0.0, angle_term=False, disparity_step_px=0.0, edge_dropout=0.0,
+                      random_dropout=0.0, grazing_deg=90.0, max_range=100.0, lateral_px=0.5)
+    h, w = 120, 160
+    code = np.arange(h * w).reshape(h, w)
+    depth = (1.0 + 1e-3 * code).astype(np.float32)  # encodes each pixel's own index
+    out = apply_noise(depth, small_K(h, w), cfg, np.random.default_rng(5))
+    src = np.rint((out.astype(np.float64) - 1.0) / 1e-3).astype(int)
+    assert np.allclose(out, depth.ravel()[src], atol=0)
+    rr, cc = np.divmod(src, w)
+    dr = (rr - np.arange(h)[:, None])[3:-3, 3:-3].ravel()
+    dc = (cc - np.arange(w)[None, :])[3:-3, 3:-3].ravel()
+    p_moved = 0.3173  # P(|N(0, 0.5)| > 0.5)
+    for d in (dr, dc):
+        assert np.abs(d).max() <= 2
+        assert abs(d.mean()) < 0.02
+        assert np.mean(d != 0) == pytest.approx(p_moved, abs=0.015)
+    assert abs(np.corrcoef(dr, dc)[0, 1]) < 0.03
+
+
 def test_seed_determinism():
     cfg = NoiseConfig()
     depth = plane_depth(tilted_normal(30.0, "y"), [0, 0, 1.0], H, W, K)
     depth[200:300, 300:400] -= 0.2
+    before = depth.copy()
     a = apply_noise(depth, K, cfg, np.random.default_rng(11))
+    assert np.array_equal(depth, before)  # input untouched
     b = apply_noise(depth, K, cfg, np.random.default_rng(11))
     c = apply_noise(depth, K, cfg, np.random.default_rng(12))
     assert a.dtype == np.float32 and a.shape == depth.shape
