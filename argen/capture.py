@@ -1,0 +1,357 @@
+"""Simulated AR capture: orchestrates scene → camera → render → AR step → noise → BOP files.
+
+Per frame, as a real AR capture does it: the background (table, board, clutter) is rendered from the
+true camera pose; the markers are detected in that image and the camera pose is estimated from the
+board; the virtual objects are rendered from the *estimated* pose and z-composited into the
+background, so marker-tracking error shows up as objects slightly off the table. Ground truth is the
+object pose in the estimated camera frame, so labels agree exactly with the rendered object pixels.
+
+Frames are numbered by their attempt index ``i`` (scene ``i // frames_per_scene``, image
+``i % frames_per_scene``); a rejected frame leaves a gap in the image ids and is logged. Every frame
+draws from its own generator seeded by (seed, i), so workers, shards and resumed runs give the same
+frames. Progress is committed to ``capture_log.json`` (written last, atomically); a killed run
+resumes with the frames not yet in it.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import re
+import multiprocessing as mp
+import shutil
+import sys
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from argen import __version__, bop
+from argen.ar import estimate_board_pose, pose_error
+from argen.board import Board
+from argen.camera import intrinsics, sample_view
+from argen.config import TemplateConfig, to_dict
+from argen.errors import ArgenError
+from argen.fileio import read_json, write_json
+from argen.noise import apply_noise
+from argen.objects import ObjectModel, write_models
+from argen.render import get_renderer
+from argen.scene import build_scene
+
+STAGES = ("scene", "render", "ar", "noise", "write")
+
+
+@dataclass
+class CaptureRequest:
+    """What to capture. frames: number of frame attempts (accepted + rejected); out: dataset root."""
+
+    cfg: TemplateConfig
+    objects: list[ObjectModel]
+    out: Path
+    frames: int
+    workers: int = 1
+    models_source: str = "builtin"
+    overwrite: bool = False
+    progress: bool = True
+
+
+@dataclass
+class FrameRecord:
+    """What a worker returns for one frame: JSON entries for the scene files and the log."""
+
+    index: int
+    scene_id: int
+    im_id: int
+    accepted: bool
+    log: dict
+    camera: dict | None = None
+    gt: list | None = None
+    gt_info: list | None = None
+    timing: dict = field(default_factory=dict)
+
+
+def frame_rngs(seed: int, index: int, n: int = 4) -> list[np.random.Generator]:
+    """Independent generators for the stages of frame ``index`` (scene, camera, noise, spare)."""
+    return [np.random.default_rng(s) for s in np.random.SeedSequence([seed, index]).spawn(n)]
+
+
+class FrameMaker:
+    """Per-process state: the renderer, the board and the objects; makes and writes one frame."""
+
+    def __init__(self, cfg: TemplateConfig, objects: list[ObjectModel], out: Path):
+        self.cfg = cfg
+        self.objects = objects
+        self.out = Path(out)
+        self.board = Board.from_config(cfg.board)
+        self.K = intrinsics(cfg.camera)
+        self.renderer = get_renderer(cfg.camera.width, cfg.camera.height)
+
+    def simulate(self, index: int) -> tuple[dict, dict]:
+        """Simulate frame ``index``: returns (arrays, metadata). Arrays are empty for a rejected frame."""
+        cfg, K = self.cfg, self.K
+        rng_scene, rng_cam, rng_noise, _ = frame_rngs(cfg.seed, index)
+        timing = {}
+        t0 = time.perf_counter()
+        scene = build_scene(cfg, self.objects, self.board, rng_scene)
+        T_true, view = sample_view(cfg.camera, rng_cam)
+        t1 = time.perf_counter()
+        timing["scene"] = t1 - t0
+        cam = cfg.camera
+        bg = self.renderer.render(scene.background, K, T_true, lights=scene.lights, ambient=scene.ambient,
+                                  znear=cam.z_near, zfar=cam.z_far)
+        t2 = time.perf_counter()
+        est = estimate_board_pose(bg.rgb, self.board, K, cfg.ar)
+        t3 = time.perf_counter()
+        timing["render"], timing["ar"] = t2 - t1, t3 - t2
+        log = {"index": index, "view": view, "markers": est.n_markers, "reproj_px": _f(est.reproj_px),
+               "placed": scene.info["placed"], "unplaced": scene.info["unplaced"]}
+        if est.T_cam_board is not None:
+            rot, trans = pose_error(est.T_cam_board, T_true)
+            log["board_pose_error"] = {"rot_deg": float(rot), "trans_mm": float(trans * 1000)}
+        accepted, reason = est.accepted, est.reason
+        if accepted and not scene.placements:
+            accepted, reason = False, "no object could be placed"
+        log["accepted"], log["reason"] = bool(accepted), reason
+        if not accepted:
+            return {}, {"log": log, "timing": timing}
+        T_est = est.T_cam_board  # board frame = world frame
+        items = scene.object_items()
+        t4 = time.perf_counter()
+        ob = self.renderer.render(items, K, T_est, lights=scene.lights, ambient=scene.ambient,
+                                  znear=cam.z_near, zfar=cam.z_far, seg=True)
+        full = self.renderer.full_masks(items, K, T_est, znear=cam.z_near, zfar=cam.z_far)
+        front = (ob.depth > 0) & ((bg.depth == 0) | (ob.depth < bg.depth))
+        rgb = np.where(front[..., None], ob.rgb, bg.rgb)
+        depth = np.where(front, ob.depth, bg.depth).astype(np.float32)
+        seg = np.where(front, ob.seg, 0)
+        t5 = time.perf_counter()
+        timing["render"] += t5 - t4
+        if cfg.noise.enabled:
+            depth = apply_noise(depth, K, cfg.noise, rng_noise)
+        timing["noise"] = time.perf_counter() - t5
+        gts, masks = [], []
+        for i, p in enumerate(scene.placements):
+            T_cam_obj = T_est @ p.T_world_obj
+            gts.append((p.obj.obj_id, T_cam_obj[:3, :3], T_cam_obj[:3, 3]))
+            m_full = full.get(i + 1, np.zeros_like(front))
+            masks.append((m_full, seg == i + 1))
+        arrays = {"rgb": rgb, "depth": depth, "gts": gts, "masks": masks}
+        return arrays, {"log": log, "timing": timing, "T_est": T_est}
+
+    def make(self, index: int) -> FrameRecord:
+        """Simulate frame ``index`` and write its image files; the JSON entries are returned."""
+        cfg = self.cfg
+        scene_id, im_id = divmod(index, cfg.output.frames_per_scene)
+        arrays, meta = self.simulate(index)
+        log, timing = meta["log"], meta["timing"]
+        log.update({"scene_id": scene_id, "im_id": im_id})
+        if not log["accepted"]:
+            return FrameRecord(index, scene_id, im_id, False, log, timing=timing)
+        t0 = time.perf_counter()
+        root, split, ds = self.out, cfg.output.split, cfg.output.depth_scale
+        depth = arrays["depth"]
+        gt_entries, info_entries = [], []
+        for g, ((obj_id, R, t), (m_full, m_vis)) in enumerate(zip(arrays["gts"], arrays["masks"])):
+            bop.write_mask(bop.mask_path(root, split, scene_id, im_id, g, visib=False), m_full)
+            bop.write_mask(bop.mask_path(root, split, scene_id, im_id, g, visib=True), m_vis)
+            gt_entries.append(bop.gt_entry(obj_id, R, t))
+            info_entries.append(bop.gt_info_entry(m_full, m_vis, depth))
+        bop.write_depth(bop.image_path(root, split, scene_id, im_id, "depth"), depth, ds)
+        bop.write_png(bop.image_path(root, split, scene_id, im_id, "rgb"), arrays["rgb"])
+        timing["write"] = time.perf_counter() - t0
+        camera = bop.camera_entry(self.K, ds, meta["T_est"])
+        return FrameRecord(index, scene_id, im_id, True, log, camera, gt_entries, info_entries, timing)
+
+
+def _f(v):
+    return None if v is None or not np.isfinite(v) else float(v)
+
+
+# --------------------------------------------------------------------------------- dataset files
+
+
+def dataset_signature(req: CaptureRequest) -> dict:
+    """What must match for a run to resume into an existing output folder."""
+    return {
+        "config": to_dict(req.cfg),
+        "models": req.models_source,
+        "objects": [o.obj_id for o in req.objects],
+    }
+
+
+def prepare_output(req: CaptureRequest) -> dict[int, dict]:
+    """Create or check the output folder; returns the capture log entries already done (by index)."""
+    out = req.out
+    meta_p = out / "argen.json"
+    sig = dataset_signature(req)
+    if out.exists() and not out.is_dir():
+        raise ArgenError(f"output path {out} exists and is not a folder")
+    if meta_p.is_file():
+        old = read_json(meta_p, "argen.json")
+        same = all(old.get(k) == v for k, v in json.loads(json.dumps(sig)).items())
+        if not same and not req.overwrite:
+            raise ArgenError(f"{out} holds a dataset made with other options; use --overwrite to replace it "
+                             "or choose another --out")
+        if not same or req.overwrite:
+            _remove_ours(out, req.cfg.output.split)
+    elif out.is_dir() and any(out.iterdir()):
+        if not req.overwrite:
+            raise ArgenError(f"output folder {out} is not empty and holds no argen.json; use --overwrite "
+                             "or choose another --out")
+        _remove_ours(out, req.cfg.output.split)
+    out.mkdir(parents=True, exist_ok=True)
+    write_models(out / "models", req.objects)
+    cam = req.cfg.camera
+    write_json(out / "camera.json", {"cx": cam.cx, "cy": cam.cy, "fx": cam.fx, "fy": cam.fy,
+                                     "depth_scale": req.cfg.output.depth_scale,
+                                     "width": cam.width, "height": cam.height})
+    meta = {"argen_version": __version__, "kind": "capture-sim", "template": req.cfg.name, "seed": req.cfg.seed,
+            "frames": req.frames, "split": req.cfg.output.split, "units": "BOP (mm)", **sig,
+            "object_names": {str(o.obj_id): o.name for o in req.objects}}
+    write_json(meta_p, meta)
+    log_p = out / "capture_log.json"
+    if log_p.is_file():
+        log = read_json(log_p, "capture_log.json")
+        return {int(e["index"]): e for e in log.get("frames", [])}
+    return {}
+
+
+def _remove_ours(out: Path, split: str) -> None:
+    """Remove what a capture wrote (never other files the user keeps there)."""
+    for name in ("argen.json", "capture_log.json", "camera.json"):
+        (out / name).unlink(missing_ok=True)
+    for name in ("models", split):
+        if (out / name).is_dir():
+            shutil.rmtree(out / name)
+
+
+class SceneJsons:
+    """The three per-scene JSON files, kept in memory and flushed atomically."""
+
+    def __init__(self, root: Path, split: str):
+        self.root, self.split = root, split
+        self.data: dict[int, dict[str, dict]] = {}
+        self.dirty: set[int] = set()
+
+    def _load(self, scene_id: int) -> dict[str, dict]:
+        if scene_id not in self.data:
+            d = bop.scene_dir(self.root, self.split, scene_id)
+            self.data[scene_id] = {
+                name: (read_json(d / f"{name}.json", f"{name}.json") if (d / f"{name}.json").is_file() else {})
+                for name in ("scene_camera", "scene_gt", "scene_gt_info")
+            }
+        return self.data[scene_id]
+
+    def add(self, rec: FrameRecord) -> None:
+        s = self._load(rec.scene_id)
+        key = str(rec.im_id)
+        s["scene_camera"][key] = rec.camera
+        s["scene_gt"][key] = rec.gt
+        s["scene_gt_info"][key] = rec.gt_info
+        self.dirty.add(rec.scene_id)
+
+    def flush(self) -> None:
+        for sid in sorted(self.dirty):
+            d = bop.scene_dir(self.root, self.split, sid)
+            for name, content in self.data[sid].items():
+                ordered = {k: content[k] for k in sorted(content, key=int)}
+                write_json(d / f"{name}.json", ordered, indent=None)
+        self.dirty.clear()
+
+
+# ------------------------------------------------------------------------------------- running
+
+_worker: FrameMaker | None = None
+
+
+def _init_worker(cfg, objects, out):
+    global _worker
+    _worker = FrameMaker(cfg, objects, out)
+
+
+def _work(index: int) -> FrameRecord:
+    return _worker.make(index)
+
+
+@dataclass
+class CaptureSummary:
+    written: int
+    rejected: int
+    skipped: int
+    seconds: float
+    stage_seconds: dict
+    rejected_reasons: dict
+    unplaced: int
+
+    def line(self) -> str:
+        n = self.written + self.rejected
+        spf = self.seconds / n if n else 0.0
+        reasons = ", ".join(f"{k}: {v}" for k, v in self.rejected_reasons.items())
+        s = (f"{self.written} frames written, {self.rejected} rejected"
+             + (f" ({reasons})" if reasons else "")
+             + (f", {self.skipped} already done" if self.skipped else "")
+             + f"; {spf:.3f} s per frame ({n / self.seconds if self.seconds else 0:.2f} frames/s)")
+        if self.unplaced:
+            s += f"; {self.unplaced} object instances could not be placed (see capture_log.json)"
+        return s
+
+
+def run_capture(req: CaptureRequest) -> CaptureSummary:
+    """Capture ``req.frames`` frames into ``req.out`` (resuming), returning a summary."""
+    if req.frames < 1:
+        raise ArgenError("--frames must be at least 1")
+    if req.workers < 1:
+        raise ArgenError("--workers must be at least 1")
+    done = prepare_output(req)
+    todo = [i for i in range(req.frames) if i not in done]
+    jsons = SceneJsons(req.out, req.cfg.output.split)
+    log_entries = dict(done)
+    stage = {k: 0.0 for k in STAGES}
+    t_start = time.perf_counter()
+    written = rejected = unplaced = 0
+    reasons: dict[str, int] = {}
+
+    def commit():
+        jsons.flush()
+        write_json(req.out / "capture_log.json",
+                   {"frames": [log_entries[k] for k in sorted(log_entries)]}, indent=1)
+
+    from tqdm import tqdm
+
+    bar = tqdm(total=len(todo), desc="capture-sim", unit="frame", disable=not req.progress, file=sys.stderr)
+    last_commit = time.perf_counter()
+    try:
+        for rec in _records(req, todo):
+            log_entries[rec.index] = rec.log
+            for k, v in rec.timing.items():
+                stage[k] = stage.get(k, 0.0) + v
+            unplaced += len(rec.log.get("unplaced", []))
+            if rec.accepted:
+                jsons.add(rec)
+                written += 1
+            else:
+                rejected += 1
+                key = re.sub(r"\d+(\.\d+)?", "N", rec.log["reason"]).split(" (")[0]
+                reasons[key] = reasons.get(key, 0) + 1
+            bar.update(1)
+            bar.set_postfix(written=written, rejected=rejected)
+            if time.perf_counter() - last_commit > 5.0:
+                commit()
+                last_commit = time.perf_counter()
+        commit()
+    finally:
+        bar.close()
+    return CaptureSummary(written, rejected, req.frames - len(todo), time.perf_counter() - t_start, stage,
+                          reasons, unplaced)
+
+
+def _records(req: CaptureRequest, todo: list[int]):
+    if req.workers == 1 or len(todo) <= 1:
+        maker = FrameMaker(req.cfg, req.objects, req.out)
+        for i in todo:
+            yield maker.make(i)
+        return
+    ctx = mp.get_context("spawn")
+    with ctx.Pool(req.workers, initializer=_init_worker, initargs=(req.cfg, req.objects, req.out)) as pool:
+        yield from pool.imap(_work, todo, chunksize=1)
