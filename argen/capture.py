@@ -19,6 +19,7 @@ import dataclasses
 import json
 import re
 import multiprocessing as mp
+import os
 import shutil
 import sys
 import time
@@ -265,8 +266,10 @@ class SceneJsons:
 _worker: FrameMaker | None = None
 
 
-def _init_worker(cfg, objects, out):
+def _init_worker(cfg, objects, out, threads):
     global _worker
+    # llvmpipe (OSMesa) renders with all cores by default; share them between the workers
+    os.environ.setdefault("LP_NUM_THREADS", str(threads))
     _worker = FrameMaker(cfg, objects, out)
 
 
@@ -353,5 +356,5 @@ def _records(req: CaptureRequest, todo: list[int]):
             yield maker.make(i)
         return
     ctx = mp.get_context("spawn")
-    with ctx.Pool(req.workers, initializer=_init_worker, initargs=(req.cfg, req.objects, req.out)) as pool:
+    with ctx.Pool(req.workers, initializer=_init_worker, initargs=(req.cfg, req.objects, req.out, max(1, (os.cpu_count() or 1) // req.workers))) as pool:
         yield from pool.imap(_work, todo, chunksize=1)

@@ -85,9 +85,9 @@ class SceneConfig:
 
     table_size: float = 2.5  # metres, square
     table_color: tuple[int, int, int] = (150, 120, 90)
-    ambient: float = 0.35
-    light_intensity: Range = (2.0, 4.0)  # directional light
-    point_light_intensity: Range = (3.0, 8.0)
+    ambient: float = 0.3
+    light_intensity: Range = (1.2, 2.2)  # directional light (diffuse: intensity * cos / pi)
+    point_light_intensity: Range = (1.0, 3.0)  # point light (further divided by distance^2)
 
 
 @dataclass

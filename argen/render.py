@@ -39,6 +39,7 @@ contexts do not survive ``fork``; start workers with the "spawn" method (argen.c
 
 from __future__ import annotations
 
+import atexit
 import os
 
 os.environ.setdefault("PYOPENGL_PLATFORM", "osmesa")
@@ -640,6 +641,18 @@ class Renderer:
 
 _RENDERERS: dict[tuple, Renderer] = {}
 _FORKED: list[Renderer] = []  # inherited through fork: their contexts are unusable; never touched
+
+
+@atexit.register
+def _close_all() -> None:
+    """Free this process's contexts before interpreter shutdown (else PyOpenGL prints noise then)."""
+    pid = os.getpid()
+    for k, r in list(_RENDERERS.items()):
+        if k[0] == pid:
+            try:
+                r.close()
+            except Exception:  # shutting down: nothing useful to report
+                pass
 
 
 def get_renderer(width: int, height: int, max_faces: int | None = None) -> Renderer:
