@@ -32,6 +32,7 @@ $(STAMP): pyproject.toml | sysdeps
 	$(PIP) install -q torch==2.13.0
 	$(PIP) install -q -e '.[test]'
 	# pyrender pins PyOpenGL 3.1.0, which lacks OSMesaCreateContextAttribs: upgrade it afterwards
+	# (not a dependency in pyproject.toml: pip would refuse the conflict with the pin)
 	$(PIP) install -q --no-deps 'PyOpenGL>=3.1.4'
 	touch $(STAMP)
 
