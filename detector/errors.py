@@ -1,0 +1,9 @@
+"""The one exception type for errors a user can cause in ``detector`` (bad files, bad options, bad checkpoints).
+
+The CLI turns it (and ``argen.errors.ArgenError`` raised by ``argen.h5``) into one line on stderr and
+exit code 2; anything else is a bug and raises normally.
+"""
+
+
+class DetectorError(Exception):
+    """A problem with the user's input: a malformed label file, a mismatched checkpoint, a bad option."""
