@@ -22,7 +22,7 @@ import cv2
 import numpy as np
 
 from argen.errors import ArgenError
-from argen.fileio import atomic_path, read_json, write_json
+from argen.fileio import atomic_path, read_json, write_bytes, write_json
 
 MM_PER_M = 1000.0
 
@@ -167,9 +167,11 @@ def write_png(path: str | os.PathLike, image: np.ndarray, compression: int = 1) 
     """Write an image atomically (RGB (H,W,3) uint8, or (H,W) uint8/uint16)."""
     if image.ndim == 3:
         image = cv2.cvtColor(image, cv2.COLOR_RGB2BGR)
-    with atomic_path(path) as tmp:
-        if not cv2.imwrite(str(tmp), image, [cv2.IMWRITE_PNG_COMPRESSION, compression]):
-            raise ArgenError(f"cannot write image {path}")
+    ok, buf = cv2.imencode(".png", image, [cv2.IMWRITE_PNG_COMPRESSION, compression])
+    if not ok:
+        raise ArgenError(f"cannot encode image {path} ({image.dtype}, shape {image.shape})")
+    # encoded in memory, written by Python: OS errors (disk full, permissions) get a clear message
+    write_bytes(path, buf.tobytes(), sync=False)
 
 
 def write_depth(path: str | os.PathLike, depth: np.ndarray, depth_scale: float) -> None:

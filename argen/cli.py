@@ -70,6 +70,18 @@ def load_config(scene: str, seed: Optional[int], noise: Optional[str], sets: lis
     return override(cfg, dotted) if dotted else cfg
 
 
+def check_placeable(cfg, objs) -> None:
+    """Refuse objects that fit on the board's free area in no resting pose (impossible placement)."""
+    from argen.board import Board
+    from argen.placement import never_fit
+
+    half = Board.from_config(cfg.board).free_half_extent
+    bad = never_fit(objs, cfg.placement, half)
+    if bad:
+        raise ArgenError(f"impossible placement: {', '.join(bad)} cannot fit on the board's free area "
+                         f"({2 * half:.3f} m square); use a larger board (board.markers_per_side, board.marker_gap)")
+
+
 @app.command("capture-sim")
 @user_errors
 def capture_sim(
@@ -95,6 +107,7 @@ def capture_sim(
         raise ArgenError(f"--workers must be at least 1, got {workers}")
     cfg = load_config(scene, seed, noise, sets, objects)
     objs = load_objects(models, cfg.objects or None)
+    check_placeable(cfg, objs)
     req = CaptureRequest(cfg=cfg, objects=objs, out=out, frames=frames, workers=workers,
                          models_source=str(models.resolve()) if models else "builtin",
                          overwrite=overwrite, progress=not quiet)

@@ -16,6 +16,15 @@ from typing import Any, Iterator
 from argen.errors import ArgenError
 
 
+def _file_mode() -> int:
+    mask = os.umask(0)
+    os.umask(mask)
+    return 0o666 & ~mask
+
+
+_FILE_MODE = _file_mode()
+
+
 @contextlib.contextmanager
 def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
     """Yield a temporary path beside ``path``; on success rename it onto ``path``.
@@ -26,6 +35,7 @@ def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=f".tmp-{path.stem}-", suffix=path.suffix, dir=path.parent)
+    os.fchmod(fd, _FILE_MODE)  # mkstemp makes 0600 files; give the final file the usual mode
     os.close(fd)
     tmp_path = Path(tmp)
     try:
@@ -40,20 +50,22 @@ def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
 
 
 def _os_error(exc: OSError, path: Path) -> ArgenError:
-    if exc.errno == errno.ENOSPC:
-        return ArgenError(f"disk full while writing {path}; the files already written are intact")
+    if exc.errno in (errno.ENOSPC, errno.EDQUOT, errno.EFBIG):
+        why = "file size limit reached" if exc.errno == errno.EFBIG else "disk full"
+        return ArgenError(f"{why} while writing {path}; the files already written are intact")
     if exc.errno in (errno.EACCES, errno.EPERM, errno.EROFS):
         return ArgenError(f"no permission to write {path}")
     return ArgenError(f"cannot write {path}: {exc.strerror or exc}")
 
 
-def write_bytes(path: str | os.PathLike, data: bytes) -> None:
-    """Write ``data`` to ``path`` atomically."""
+def write_bytes(path: str | os.PathLike, data: bytes, sync: bool = True) -> None:
+    """Write ``data`` to ``path`` atomically; ``sync`` also flushes it to the disk before the rename."""
     with atomic_path(path) as tmp:
         with open(tmp, "wb") as f:
             f.write(data)
             f.flush()
-            os.fsync(f.fileno())
+            if sync:
+                os.fsync(f.fileno())
 
 
 def write_json(path: str | os.PathLike, obj: Any, indent: int | None = 2) -> None:

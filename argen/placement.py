@@ -126,3 +126,23 @@ def place_instances(
         if not ok:
             failed.append(obj)
     return placed, failed
+
+
+def never_fit(objects: list[ObjectModel], cfg: PlacementConfig, half_extent: float, yaws: int = 36) -> list[str]:
+    """Descriptions of the objects that cannot stand inside [-half_extent, half_extent]^2 in any resting pose.
+
+    Tries every resting pose with ``yaws`` rotations about the board normal; an object listed here would
+    fail every placement attempt, so capture refuses to start instead of writing frames without it.
+    """
+    bad = []
+    for obj in objects:
+        _, probs = obj.stable_poses(cfg.stable_poses)
+        best = np.inf
+        for pose_idx in range(len(probs)):
+            T_rest = resting_transform(obj, pose_idx, cfg.stable_poses)
+            for yaw in np.linspace(0.0, np.pi / 2, yaws, endpoint=False):
+                fp = footprint_of(obj, _rz(yaw) @ T_rest)
+                best = min(best, float((fp.max(axis=0) - fp.min(axis=0)).max()))
+        if best > 2 * half_extent:
+            bad.append(f"'{obj.name}' ({best:.3f} m wide at best)")
+    return bad
