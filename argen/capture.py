@@ -55,6 +55,7 @@ class CaptureRequest:
     models_source: str = "builtin"
     overwrite: bool = False
     progress: bool = True
+    shard: tuple[int, int] = (0, 1)  # (I, N): this run makes the frames with index % N == I (see argen.merge)
 
 
 @dataclass
@@ -173,12 +174,23 @@ def _f(v):
 
 
 def dataset_signature(req: CaptureRequest) -> dict:
-    """What must match for a run to resume into an existing output folder."""
-    return {
+    """What must match for a run to resume into an existing output folder (and for shards to merge)."""
+    sig = {
         "config": to_dict(req.cfg),
         "models": req.models_source,
         "objects": [o.obj_id for o in req.objects],
     }
+    if req.shard[1] > 1:
+        sig["shard"] = list(req.shard)
+    return sig
+
+
+def shard_indices(frames: int, shard: tuple[int, int]) -> list[int]:
+    """Frame indices that shard ``(I, N)`` makes: every N-th frame starting at I (disjoint, covering all)."""
+    i, n = shard
+    if not (n >= 1 and 0 <= i < n):
+        raise ArgenError(f"--shard must be I/N with 0 <= I < N, got {i}/{n}")
+    return list(range(i, frames, n))
 
 
 def prepare_output(req: CaptureRequest) -> dict[int, dict]:
@@ -306,8 +318,9 @@ def run_capture(req: CaptureRequest) -> CaptureSummary:
         raise ArgenError("--frames must be at least 1")
     if req.workers < 1:
         raise ArgenError("--workers must be at least 1")
+    mine = shard_indices(req.frames, req.shard)
     done = prepare_output(req)
-    todo = [i for i in range(req.frames) if i not in done]
+    todo = [i for i in mine if i not in done]
     jsons = SceneJsons(req.out, req.cfg.output.split)
     log_entries = dict(done)
     stage = {k: 0.0 for k in STAGES}
@@ -345,7 +358,7 @@ def run_capture(req: CaptureRequest) -> CaptureSummary:
         commit()
     finally:
         bar.close()
-    return CaptureSummary(written, rejected, req.frames - len(todo), time.perf_counter() - t_start, stage,
+    return CaptureSummary(written, rejected, len(mine) - len(todo), time.perf_counter() - t_start, stage,
                           reasons, unplaced)
 
 

@@ -70,6 +70,19 @@ def load_config(scene: str, seed: Optional[int], noise: Optional[str], sets: lis
     return override(cfg, dotted) if dotted else cfg
 
 
+def parse_shard(text: Optional[str]) -> tuple[int, int]:
+    """``"2/8"`` -> (2, 8); None -> (0, 1)."""
+    if text is None:
+        return (0, 1)
+    try:
+        i, n = (int(v) for v in text.split("/"))
+    except ValueError:
+        raise ArgenError(f"--shard expects I/N (e.g. 0/4), got '{text}'") from None
+    if not (n >= 1 and 0 <= i < n):
+        raise ArgenError(f"--shard must be I/N with 0 <= I < N, got '{text}'")
+    return (i, n)
+
+
 def check_placeable(cfg, objs) -> None:
     """Refuse objects that fit on the board's free area in no resting pose (impossible placement)."""
     from argen.board import Board
@@ -96,6 +109,8 @@ def capture_sim(
     overwrite: bool = typer.Option(False, "--overwrite", help="replace an output folder made with other options"),
     sets: list[str] = typer.Option([], "--set", help="override any template key, e.g. --set camera.distance=[0.5,1.0]"),
     quiet: bool = typer.Option(False, "--quiet", help="no progress bar"),
+    shard: Optional[str] = typer.Option(None, "--shard", help="I/N: make only frames with index % N == I "
+                                        "(one of N machines); join the shards with `argen merge`"),
 ):
     """Simulate an AR capture (boards, placed objects, rendering, sensor noise) and write BOP scenes."""
     from argen.capture import CaptureRequest, run_capture
@@ -110,9 +125,23 @@ def capture_sim(
     check_placeable(cfg, objs)
     req = CaptureRequest(cfg=cfg, objects=objs, out=out, frames=frames, workers=workers,
                          models_source=str(models.resolve()) if models else "builtin",
-                         overwrite=overwrite, progress=not quiet)
+                         overwrite=overwrite, progress=not quiet, shard=parse_shard(shard))
     summary = run_capture(req)
     typer.echo(f"{out}: {summary.line()}")
+
+
+@app.command("merge")
+@user_errors
+def merge_cmd(
+    shards: list[Path] = typer.Argument(..., help="the shard folders (capture-sim --shard I/N outputs)"),
+    out: Path = typer.Option(..., "--out", help="merged dataset folder"),
+    overwrite: bool = typer.Option(False, "--overwrite", help="replace a non-empty output folder"),
+):
+    """Join the shards of a capture made on several machines into one dataset (equal to a single run)."""
+    from argen.merge import merge_captures
+
+    n = merge_captures(shards, out, overwrite=overwrite)
+    typer.echo(f"{out}: merged {len(shards)} shards, {n} frames")
 
 
 @app.command("board")
