@@ -169,5 +169,9 @@ def main() -> None:
     app(prog_name="argen")
 
 
+from argen.cli_label import register as _register_label  # noqa: E402  (label, validate, preview)
+_register_label(app)
+
+
 if __name__ == "__main__":
     sys.exit(main())

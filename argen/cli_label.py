@@ -1,0 +1,84 @@
+"""The ``argen label``, ``argen validate`` and ``argen preview`` commands (registered on argen.cli's app)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Optional
+
+import typer
+
+from argen.errors import ArgenError
+
+
+def register(app: typer.Typer) -> None:
+    """Add the label, validate and preview commands to ``app``."""
+    from argen.cli import user_errors  # here, not at import time: argen.cli imports this module at its end
+
+    @app.command("label")
+    @user_errors
+    def label_cmd(
+        dataset: Path = typer.Argument(..., help="BOP dataset folder (argen capture-sim output, a BOP test set, ...)"),
+        out: Path = typer.Option(..., "--out", help="label file to write (.h5)"),
+        split: str = typer.Option("train_pbr", "--split", help="split folder inside the dataset"),
+        models: Optional[Path] = typer.Option(None, "--models", help="BOP models folder (default: DATASET/models)"),
+        max_points: int = typer.Option(30000, "--max-points", help="points kept per frame (random subsampling)"),
+        max_depth: Optional[float] = typer.Option(None, "--max-depth", help="working volume: drop points farther "
+                                                  "than this (metres; default: template camera distance + 0.6, else 2)"),
+        voxel: float = typer.Option(0.0, "--voxel", help="voxel edge (metres) for one-point-per-voxel before the "
+                                    "random subsampling (0 = off)"),
+        seed: int = typer.Option(0, "--seed", help="subsampling seed"),
+        render_masks: bool = typer.Option(False, "--render-masks", help="compute visible masks by rendering the "
+                                          "GT poses even when the dataset has mask_visib"),
+        workers: int = typer.Option(1, "--workers", help="processes"),
+        chunk: int = typer.Option(16, "--chunk", help="frames per resumable part (a killed run redoes at most "
+                                  "one part per worker)"),
+        overwrite: bool = typer.Option(False, "--overwrite", help="replace an existing output or interrupted run"),
+        quiet: bool = typer.Option(False, "--quiet", help="no progress bar"),
+    ):
+        """Turn BOP scenes into per-point labels (features, semantic, instance, 9 control points) in HDF5."""
+        from argen.label import LabelConfig, LabelRequest, run_label
+
+        cfg = LabelConfig(max_points=max_points, max_depth=max_depth, voxel=voxel, seed=seed,
+                          render_masks=render_masks)
+        req = LabelRequest(dataset=dataset, split=split, out=out, cfg=cfg, models=models, workers=workers,
+                           overwrite=overwrite, progress=not quiet, chunk=chunk)
+        summary = run_label(req)
+        typer.echo(f"{out}: {summary.line()}")
+
+    @app.command("validate")
+    @user_errors
+    def validate_cmd(
+        file: Path = typer.Argument(..., help="label file (.h5) written by argen label"),
+        max_errors: int = typer.Option(10, "--max-errors", help="stop after this many violations"),
+    ):
+        """Check a label file's schema and label invariants; exit 1 and list the first violations."""
+        from argen.validate import validate_file
+
+        n, errs = validate_file(file, max_errors=max(1, max_errors))
+        if errs:
+            for e in errs:
+                typer.echo(f"argen: invalid: {file}: {e}", err=True)
+            raise typer.Exit(1)
+        typer.echo(f"{file}: valid ({n} frames)")
+
+    @app.command("preview")
+    @user_errors
+    def preview_cmd(
+        source: Path = typer.Argument(..., help="label file (.h5) or BOP dataset folder"),
+        out: Path = typer.Option(..., "--out", help="PNG to write"),
+        frame: int = typer.Option(0, "--frame", help="frame index (file order, or split order for a dataset)"),
+        split: str = typer.Option("train_pbr", "--split", help="split, when SOURCE is a BOP dataset"),
+        models: Optional[Path] = typer.Option(None, "--models", help="models folder, when SOURCE is a BOP dataset"),
+    ):
+        """Draw a frame's points coloured by instance and the 3D boxes from the control points."""
+        from argen.preview import preview_bop, preview_file
+
+        if out.suffix.lower() != ".png":
+            raise ArgenError(f"--out must name a .png file, got {out}")
+        if source.is_dir():
+            fr = preview_bop(source, split, frame, out, models=models)
+        elif source.exists():
+            fr = preview_file(source, frame, out)
+        else:
+            raise ArgenError(f"not found: {source}")
+        typer.echo(f"{out}: scene {fr.scene_id} image {fr.im_id}, {len(fr)} points, {len(fr.instances)} instances")
