@@ -32,6 +32,8 @@ def register(app: typer.Typer) -> None:
         workers: int = typer.Option(1, "--workers", help="processes"),
         chunk: int = typer.Option(16, "--chunk", help="frames per resumable part (a killed run redoes at most "
                                   "one part per worker)"),
+        compression: str = typer.Option("lzf", "--compression", help="lzf (fast, h5py built-in), gzip (~20%% "
+                                        "smaller, any HDF5 tool, slower) or none"),
         overwrite: bool = typer.Option(False, "--overwrite", help="replace an existing output or interrupted run"),
         quiet: bool = typer.Option(False, "--quiet", help="no progress bar"),
     ):
@@ -41,7 +43,8 @@ def register(app: typer.Typer) -> None:
         cfg = LabelConfig(max_points=max_points, max_depth=max_depth, voxel=voxel, seed=seed,
                           render_masks=render_masks)
         req = LabelRequest(dataset=dataset, split=split, out=out, cfg=cfg, models=models, workers=workers,
-                           overwrite=overwrite, progress=not quiet, chunk=chunk)
+                           overwrite=overwrite, progress=not quiet, chunk=chunk,
+                           compression=None if compression == "none" else compression)
         summary = run_label(req)
         typer.echo(f"{out}: {summary.line()}")
 

@@ -392,6 +392,7 @@ class LabelRequest:
     overwrite: bool = False
     progress: bool = True
     chunk: int = CHUNK
+    compression: str | None = "lzf"
 
 
 @dataclass
@@ -493,6 +494,8 @@ def run_label(req: LabelRequest) -> LabelSummary:
     req.cfg.check()
     if req.workers < 1:
         raise ArgenError(f"--workers must be at least 1, got {req.workers}")
+    if req.compression not in ("lzf", "gzip", None):
+        raise ArgenError(f"--compression must be lzf, gzip or none, got {req.compression}")
     if req.chunk < 1:
         raise ArgenError(f"--chunk must be at least 1, got {req.chunk}")
     if req.out.suffix.lower() not in (".h5", ".hdf5"):
@@ -548,17 +551,10 @@ def _chunks(req: LabelRequest, models_dir: Path, ids: list[int], todo: list[int]
 
 def assemble(req: LabelRequest, partial: Path, n_chunks: int) -> tuple[int, int]:
     """Stream the part files, in order, into ``req.out`` (atomic); returns (points, instances)."""
-    points = instances = 0
-    first = LabelFile(part_path(partial, 0))
-    try:
+    with LabelFile(part_path(partial, 0)) as first:
         table = first.objects
-    finally:
-        first.close()
-    with LabelWriter(req.out, file_attrs(req), table, compression="lzf") as w:
+    with LabelWriter(req.out, file_attrs(req), table, compression=req.compression) as w:
         for k in range(n_chunks):
             with LabelFile(part_path(partial, k)) as part:
-                for fr in part.frames():
-                    w.append(fr)
-                    points += len(fr)
-                    instances += len(fr.instances)
-    return points, instances
+                w.extend(part)
+        return w.num_points, w.num_instances

@@ -96,7 +96,7 @@ def test_plain_h5py_reads_the_documented_layout(written):
         cps = f["instances/control_points"][ioff[i]:ioff[i + 1]]
         fg = inst >= 0
         np.testing.assert_array_equal(cps[inst[fg]], frames[i].control_points[fg])
-        assert f["points/features"].compression == "gzip"
+        assert f["points/features"].compression == "lzf"
 
 
 def test_point_control_points_zero_for_background():
@@ -152,3 +152,16 @@ def test_label_file_refuses_pickling(written):
     with LabelFile(written[0]) as lf:
         with pytest.raises(TypeError, match="each worker"):
             pickle.dumps(lf)
+
+
+def test_extend_appends_whole_files_like_frame_by_frame(written, tmp_path):
+    path, objs, frames = written
+    part2 = write_label_file(tmp_path / "p2.h5", ATTRS, objs, frames[:2], compression=None)
+    with LabelWriter(tmp_path / "joined.h5", ATTRS, objs, compression="gzip") as w:
+        for p in (part2, path):
+            with LabelFile(p) as lf:
+                w.extend(lf)
+    with LabelFile(tmp_path / "joined.h5") as lf:
+        assert lf.num_frames == 2 + len(frames)
+        for i, fr in enumerate(frames[:2] + frames):
+            assert_frames_equal(lf.frame(i), fr)
