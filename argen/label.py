@@ -6,7 +6,9 @@ One frame (``Labeller.label_frame``):
 2. Instance masks: the dataset's ``mask_visib`` when every instance has one; otherwise (real test sets)
    the ground-truth poses are rendered (argen.render, one renderer per process) and a pixel is visible
    for the front-most rendered instance when the sensor depth agrees with the rendered depth within
-   ``visib_tolerance``. Where masks overlap, the lower gt index wins.
+   ``visib_tolerance``. Where masks overlap, the lower gt index wins. A masked pixel whose point lies
+   more than ``FAR_MARGIN`` outside the object's bounding sphere (box centre, half box diagonal) is
+   background: with sensor noise, mask edges hold some depths of the surface behind the object.
 3. Subsampling when a frame has more than ``max_points`` points: with ``voxel`` > 0 ("voxel+random")
    first one point per ``voxel`` cube (the first in pixel order, which evens out the density between
    near and far surfaces); then ("random", the default) a uniform random choice of ``max_points`` of those (Generator seeded from (seed, scene_id, im_id),
@@ -51,6 +53,7 @@ from argen.objects import ObjectModel, load_models
 CHUNK = 16  # frames per partial file
 NORMAL_STEP = 2  # pixels between a point and the neighbours its tangents use
 JUMP_REL = 0.03  # a neighbour whose depth differs by more than this fraction of the depth is across an edge
+FAR_MARGIN = 0.01  # metres beyond an object's bounding sphere where a masked pixel is taken as background
 CONTINUOUS_STEPS = 36  # discretisation of a continuous symmetry (10 degrees)
 
 
@@ -242,6 +245,8 @@ class Labeller:
         self.objects = objects
         self.cfg = cfg
         self._cps = {i: o.control_points for i, o in objects.items()}
+        # half the box diagonal: no surface point of the object is farther from the box centre
+        self._radius = {i: float(np.linalg.norm(c[:8] - c[8], axis=1).max()) for i, c in self._cps.items()}
 
     def _render_masks(self, gts: list[bop.FrameGT], K: np.ndarray, depth: np.ndarray, full: bool):
         """Visible masks (and full silhouettes when ``full``) of the GT instances by rendering them."""
@@ -263,6 +268,22 @@ class Labeller:
             fm = r.full_masks(items, K, np.eye(4))
             fulls = [fm[k + 1] for k in range(len(gts))]
         return visib, fulls
+
+    def _drop_far(self, instance: np.ndarray, pts: np.ndarray, cps: np.ndarray, obj_ids: np.ndarray) -> np.ndarray:
+        """Background for mask pixels whose point lies outside the object's bounding sphere (+ FAR_MARGIN).
+
+        instance: (N,) int, -1 = background; pts: (N,3) metres; cps: (I,9,3) camera-frame control points.
+        With sensor noise a mask edge pixel can hold the depth of the surface behind the object.
+        """
+        fg = np.flatnonzero(instance >= 0)
+        if len(fg) == 0:
+            return instance
+        k = instance[fg]
+        radius = np.array([self._radius[i] for i in obj_ids])[k]
+        far = np.linalg.norm(pts[fg] - cps[k, 8], axis=1) > radius + FAR_MARGIN
+        out = instance.copy()
+        out[fg[far]] = -1
+        return out
 
     def label_frame(self, scene: bop.BopScene, im_id: int) -> tuple[FrameLabels, FrameStats]:
         """Label one frame of ``scene``."""
@@ -318,11 +339,12 @@ class Labeller:
         inst_img = instance_image(masks, (h, w))
         instance = inst_img.reshape(-1)[flat]
         obj_ids = np.array([g.obj_id for g in gts], np.int32)
+        cps = np.array([self._cps[g.obj_id] @ g.R.T + g.t for g in gts], np.float64).reshape(-1, 9, 3)
+        instance = self._drop_far(instance, pts, cps, obj_ids)
         semantic = np.where(instance >= 0, obj_ids[np.maximum(instance, 0)] if len(gts) else 0, 0).astype(np.int32)
 
         R = np.array([g.R for g in gts], np.float64).reshape(-1, 3, 3)
         t = np.array([g.t for g in gts], np.float64).reshape(-1, 3)
-        cps = np.array([self._cps[g.obj_id] @ g.R.T + g.t for g in gts], np.float64).reshape(-1, 9, 3)
         inst = InstanceTable(
             obj_id=obj_ids, gt_index=np.arange(len(gts), dtype=np.int32),
             R=R.astype(np.float32), t=t.astype(np.float32), control_points=cps.astype(np.float32),

@@ -278,3 +278,19 @@ def test_two_workers_equal_one(builtin_ds, tmp_path):
     for k in a:
         if k != "attrs":
             np.testing.assert_array_equal(a[k], b[k], err_msg=k)
+
+
+def test_masked_points_outside_the_bounding_sphere_become_background():
+    from argen.label import FAR_MARGIN, Labeller
+
+    obj = builtin_objects(["duck"])[0]
+    lab = Labeller({obj.obj_id: obj}, LabelConfig())
+    t = np.array([0.05, -0.02, 0.9])
+    cps = (obj.control_points + t)[None]
+    radius = np.linalg.norm(obj.corners - obj.control_points[8], axis=1).max()
+    dirs = np.random.default_rng(0).normal(size=(6, 3))
+    dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
+    dist = np.array([0.0, 0.5, 1.0, 1.0, 1.5, 3.0]) * radius + np.array([0, 0, 0, FAR_MARGIN * 0.9, 0, 0])
+    pts = cps[0, 8] + dirs * dist[:, None]
+    inst = lab._drop_far(np.array([0, 0, 0, 0, 0, -1]), pts, cps, np.array([obj.obj_id]))
+    assert inst.tolist() == [0, 0, 0, 0, -1, -1]
