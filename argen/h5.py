@@ -243,8 +243,12 @@ class LabelFile:
         f = self._f
         a, b = int(self._pt_off[i]), int(self._pt_off[i + 1])
         c, d = int(self._in_off[i]), int(self._in_off[i + 1])
-        pts = {k: f[f"points/{k}"][a:b] for k in POINT_FIELDS}
-        inst = InstanceTable(**{k: f[f"instances/{k}"][c:d] for k in INSTANCE_FIELDS})
+        try:
+            pts = {k: f[f"points/{k}"][a:b] for k in POINT_FIELDS}
+            inst = InstanceTable(**{k: f[f"instances/{k}"][c:d] for k in INSTANCE_FIELDS})
+        except OSError as exc:  # a corrupt chunk: h5py's message spans several lines
+            raise ArgenError(f"label file {self.path} is damaged: cannot read frame {i} "
+                             f"({str(exc).splitlines()[0] if str(exc) else exc.__class__.__name__})") from exc
         return FrameLabels(
             scene_id=int(self._frames["scene_id"][i]), im_id=int(self._frames["im_id"][i]),
             cam_K=np.asarray(self._frames["cam_K"][i], np.float32),
@@ -338,8 +342,19 @@ class LabelWriter:
             if n:
                 ds[start:start + n] = np.asarray(values[k], dtype).reshape(n, *shape)
 
+    def _write_error(self, exc: OSError) -> ArgenError:
+        self.abort()
+        msg = str(exc).splitlines()[0] if str(exc) else exc.__class__.__name__
+        return ArgenError(f"cannot write {self.path} ({msg}); nothing was left at that path")
+
     def append(self, frame: FrameLabels) -> None:
         """Add one frame (its per-point control points are not stored: they follow from the instances)."""
+        try:
+            self._append_frame(frame)
+        except OSError as exc:  # disk full, quota: h5py raises OSError with a multi-line message
+            raise self._write_error(exc) from exc
+
+    def _append_frame(self, frame: FrameLabels) -> None:
         n, m = len(frame.features), len(frame.instances)
         self._append("points", POINT_FIELDS, {k: getattr(frame, k) for k in POINT_FIELDS}, self._pt_off[-1], n)
         self._append("instances", INSTANCE_FIELDS, {k: getattr(frame.instances, k) for k in INSTANCE_FIELDS},
@@ -360,6 +375,12 @@ class LabelWriter:
 
     def extend(self, lf: LabelFile) -> None:
         """Append every frame of another label file (same objects) in bulk: one read and write per dataset."""
+        try:
+            self._extend(lf)
+        except OSError as exc:
+            raise self._write_error(exc) from exc
+
+    def _extend(self, lf: LabelFile) -> None:
         f = lf._f
         n, m = int(lf._pt_off[-1]), int(lf._in_off[-1])
         self._append("points", POINT_FIELDS, {k: f[f"points/{k}"][()] for k in POINT_FIELDS}, self._pt_off[-1], n)
@@ -383,6 +404,8 @@ class LabelWriter:
             self._f.attrs["num_frames"] = self.num_frames
             self._f.close()
             self._f = None
+        except OSError as exc:
+            raise self._write_error(exc) from exc
         except BaseException:
             self.abort()
             raise

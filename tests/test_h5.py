@@ -165,3 +165,17 @@ def test_extend_appends_whole_files_like_frame_by_frame(written, tmp_path):
         assert lf.num_frames == 2 + len(frames)
         for i, fr in enumerate(frames[:2] + frames):
             assert_frames_equal(lf.frame(i), fr)
+
+
+def test_corrupt_chunk_is_a_one_line_error(written, tmp_path):
+    path = written[0]
+    with h5py.File(path, "r") as f:
+        offset = f["points/features"].id.get_chunk_info(0).byte_offset
+    bad = tmp_path / "bad.h5"
+    data = bytearray(path.read_bytes())
+    data[offset:offset + 64] = bytes(64)
+    bad.write_bytes(bytes(data))
+    with LabelFile(bad) as lf:
+        with pytest.raises(ArgenError, match="damaged: cannot read frame 0") as e:
+            lf.frame(0)
+    assert "\n" not in str(e.value)
