@@ -466,8 +466,11 @@ def _init_worker(req: LabelRequest, models_dir: Path, ids: list[int], threads: i
                   table=object_table(list(objects.values()), req.cfg.model_points, req.cfg.seed))
 
 
-def _label_chunk(k: int) -> tuple[int, int, int, int, int]:
-    """Label chunk ``k`` into its part file; returns (k, frames, points, instances, rendered)."""
+def _label_chunk(k: int, on_frame=None) -> tuple[int, int, int, int, int]:
+    """Label chunk ``k`` into its part file; returns (k, frames, points, instances, rendered).
+
+    on_frame: called after each frame (progress in the single-process run).
+    """
     req, lab, scenes = _state["req"], _state["labeller"], _state["scenes"]
     todo = _state["frames"][k * req.chunk:(k + 1) * req.chunk]
     pts = inst = rendered = 0
@@ -479,6 +482,8 @@ def _label_chunk(k: int) -> tuple[int, int, int, int, int]:
             pts += len(fr)
             inst += len(fr.instances)
             rendered += st.rendered_masks
+            if on_frame is not None:
+                on_frame()
     return k, len(todo), pts, inst, rendered
 
 
@@ -544,9 +549,10 @@ def run_label(req: LabelRequest) -> LabelSummary:
                desc="label", unit="frame", disable=not req.progress, file=sys.stderr)
     rendered = 0
     try:
-        for _, n, _, _, r in _chunks(req, models_dir, ids, todo):
+        for _, n, _, _, r, counted in _chunks(req, models_dir, ids, todo, lambda: bar.update(1)):
             rendered += r
-            bar.update(n)
+            if not counted:
+                bar.update(n)
     finally:
         bar.close()
     points, instances = assemble(req, partial, n_chunks)
@@ -554,21 +560,23 @@ def run_label(req: LabelRequest) -> LabelSummary:
     return LabelSummary(len(frames), skipped, points, instances, rendered, time.perf_counter() - t0)
 
 
-def _chunks(req: LabelRequest, models_dir: Path, ids: list[int], todo: list[int]):
+def _chunks(req: LabelRequest, models_dir: Path, ids: list[int], todo: list[int], on_frame):
+    """Label the chunks ``todo``; yields _label_chunk's tuple + whether on_frame already counted its frames."""
     if not todo:
         return
     if req.workers == 1 or len(todo) == 1:
         _init_worker(req, models_dir, ids, os.cpu_count() or 1)
         try:
             for k in todo:
-                yield _label_chunk(k)
+                yield (*_label_chunk(k, on_frame), True)
         finally:
             _state.clear()
         return
     ctx = mp.get_context("spawn")  # OSMesa contexts do not survive fork
     threads = max(1, (os.cpu_count() or 1) // req.workers)
     with ctx.Pool(req.workers, initializer=_init_worker, initargs=(req, models_dir, ids, threads)) as pool:
-        yield from pool.imap_unordered(_label_chunk, todo, chunksize=1)
+        for res in pool.imap_unordered(_label_chunk, todo, chunksize=1):
+            yield (*res, False)
 
 
 def assemble(req: LabelRequest, partial: Path, n_chunks: int) -> tuple[int, int]:
