@@ -133,14 +133,21 @@ def capture_sim(
 @app.command("merge")
 @user_errors
 def merge_cmd(
-    shards: list[Path] = typer.Argument(..., help="the shard folders (capture-sim --shard I/N outputs)"),
-    out: Path = typer.Option(..., "--out", help="merged dataset folder"),
-    overwrite: bool = typer.Option(False, "--overwrite", help="replace a non-empty output folder"),
+    shards: list[Path] = typer.Argument(..., help="the shards: capture-sim --shard folders, or label --shard .h5 files"),
+    out: Path = typer.Option(..., "--out", help="merged dataset folder (or .h5 file)"),
+    overwrite: bool = typer.Option(False, "--overwrite", help="replace a non-empty output"),
 ):
-    """Join the shards of a capture made on several machines into one dataset (equal to a single run)."""
-    from argen.merge import merge_captures
+    """Join the shards of a capture or labelling run made on several machines (equal to a single run)."""
+    if all(p.suffix.lower() in (".h5", ".hdf5") for p in shards):
+        from argen.label import merge_label_files
 
-    n = merge_captures(shards, out, overwrite=overwrite)
+        n = merge_label_files(shards, out, overwrite=overwrite)
+    elif any(p.suffix.lower() in (".h5", ".hdf5") for p in shards):
+        raise ArgenError("give either capture folders or label files to merge, not both")
+    else:
+        from argen.merge import merge_captures
+
+        n = merge_captures(shards, out, overwrite=overwrite)
     typer.echo(f"{out}: merged {len(shards)} shards, {n} frames")
 
 

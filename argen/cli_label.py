@@ -36,15 +36,19 @@ def register(app: typer.Typer) -> None:
                                         "smaller, any HDF5 tool, slower) or none"),
         overwrite: bool = typer.Option(False, "--overwrite", help="replace an existing output or interrupted run"),
         quiet: bool = typer.Option(False, "--quiet", help="no progress bar"),
+        shard: Optional[str] = typer.Option(None, "--shard", help="I/N: label only chunks k with k % N == I "
+                                            "(one of N machines); join the files with `argen merge`"),
     ):
         """Turn BOP scenes into per-point labels (features, semantic, instance, 9 control points) in HDF5."""
+        from argen.cli import parse_shard
         from argen.label import LabelConfig, LabelRequest, run_label
 
         cfg = LabelConfig(max_points=max_points, max_depth=max_depth, voxel=voxel, seed=seed,
                           render_masks=render_masks)
         req = LabelRequest(dataset=dataset, split=split, out=out, cfg=cfg, models=models, workers=workers,
                            overwrite=overwrite, progress=not quiet, chunk=chunk,
-                           compression=None if compression == "none" else compression)
+                           compression=None if compression == "none" else compression,
+                           shard=parse_shard(shard))
         summary = run_label(req)
         typer.echo(f"{out}: {summary.line()}")
 

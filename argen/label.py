@@ -421,6 +421,7 @@ class LabelRequest:
     progress: bool = True
     chunk: int = CHUNK
     compression: str | None = "lzf"
+    shard: tuple[int, int] = (0, 1)  # (I, N): label only the chunks k with k % N == I (see merge_label_files)
 
 
 @dataclass
@@ -443,7 +444,8 @@ class LabelSummary:
 def run_signature(req: LabelRequest, models_dir: Path) -> dict:
     """What a resumed run must share with the interrupted one."""
     return {"argen_version": __version__, "dataset": str(req.dataset.resolve()), "split": req.split,
-            "models": str(models_dir.resolve()), "config": asdict(req.cfg), "chunk": req.chunk}
+            "models": str(models_dir.resolve()), "config": asdict(req.cfg), "chunk": req.chunk,
+            "shard": list(req.shard)}
 
 
 def file_attrs(req: LabelRequest) -> dict:
@@ -453,7 +455,8 @@ def file_attrs(req: LabelRequest) -> dict:
             "source_split": req.split, "source_argen_json": meta.read_text() if meta.is_file() else "",
             "max_points": int(req.cfg.max_points), "max_depth": float(req.cfg.max_depth),
             "subsampling": "voxel+random" if req.cfg.voxel > 0 else "random",
-            "voxel": float(req.cfg.voxel), "seed": int(req.cfg.seed)}
+            "voxel": float(req.cfg.voxel), "seed": int(req.cfg.seed),
+            **({"shard": f"{req.shard[0]}/{req.shard[1]}", "shard_chunk": int(req.chunk)} if req.shard[1] > 1 else {})}
 
 
 def part_path(partial: Path, k: int) -> Path:
@@ -544,14 +547,22 @@ def run_label(req: LabelRequest) -> LabelSummary:
     missing = [i for i in ids if not bop.model_path(models_dir, i).is_file()]
     if missing:
         raise ArgenError(f"models folder {models_dir} has no model for object(s) {', '.join(map(str, missing))}")
+    shard_i, shard_n = req.shard
+    if not (shard_n >= 1 and 0 <= shard_i < shard_n):
+        raise ArgenError(f"--shard must be I/N with 0 <= I < N, got {shard_i}/{shard_n}")
     partial = _prepare(req, models_dir)
     n_chunks = (len(frames) + req.chunk - 1) // req.chunk
-    todo = [k for k in range(n_chunks) if not part_path(partial, k).is_file()]
-    skipped = len(frames) - sum(len(frames[k * req.chunk:(k + 1) * req.chunk]) for k in todo)
+    mine = list(range(shard_i, n_chunks, shard_n))
+    if not mine:
+        raise ArgenError(f"shard {shard_i}/{shard_n} gets no frames: {len(frames)} frames make only {n_chunks} "
+                         f"chunks of {req.chunk}; use fewer shards or a smaller --chunk")
+    todo = [k for k in mine if not part_path(partial, k).is_file()]
+    n_mine = sum(len(frames[k * req.chunk:(k + 1) * req.chunk]) for k in mine)
+    skipped = n_mine - sum(len(frames[k * req.chunk:(k + 1) * req.chunk]) for k in todo)
 
     from tqdm import tqdm
 
-    bar = tqdm(total=len(frames), initial=skipped,
+    bar = tqdm(total=n_mine, initial=skipped,
                desc="label", unit="frame", disable=not req.progress, file=sys.stderr)
     rendered = 0
     try:
@@ -561,9 +572,9 @@ def run_label(req: LabelRequest) -> LabelSummary:
                 bar.update(n)
     finally:
         bar.close()
-    points, instances = assemble(req, partial, n_chunks)
+    points, instances = assemble(req, partial, mine)
     shutil.rmtree(partial, ignore_errors=True)
-    return LabelSummary(len(frames), skipped, points, instances, rendered, time.perf_counter() - t0)
+    return LabelSummary(n_mine, skipped, points, instances, rendered, time.perf_counter() - t0)
 
 
 def _chunks(req: LabelRequest, models_dir: Path, ids: list[int], todo: list[int], on_frame):
@@ -585,12 +596,64 @@ def _chunks(req: LabelRequest, models_dir: Path, ids: list[int], todo: list[int]
             yield (*res, False)
 
 
-def assemble(req: LabelRequest, partial: Path, n_chunks: int) -> tuple[int, int]:
-    """Stream the part files, in order, into ``req.out`` (atomic); returns (points, instances)."""
-    with LabelFile(part_path(partial, 0)) as first:
+def assemble(req: LabelRequest, partial: Path, chunks: list[int]) -> tuple[int, int]:
+    """Stream the part files ``chunks``, in order, into ``req.out`` (atomic); returns (points, instances)."""
+    with LabelFile(part_path(partial, chunks[0])) as first:
         table = first.objects
     with LabelWriter(req.out, file_attrs(req), table, compression=req.compression) as w:
-        for k in range(n_chunks):
+        for k in chunks:
             with LabelFile(part_path(partial, k)) as part:
                 w.extend(part)
         return w.num_points, w.num_instances
+
+
+def merge_label_files(paths: list[Path], out: Path, overwrite: bool = False, compression: str | None = "lzf") -> int:
+    """Join the label files of ``argen label --shard I/N`` (all N of them) into ``out``; returns its frames.
+
+    Shard I holds chunks I, I+N, I+2N, ... of ``shard_chunk`` frames each, so the merge interleaves them
+    back in chunk order; the result equals the file of a single run with the same options (the per-frame
+    subsampling generator depends only on the seed and the frame's ids). ArgenError on any mismatch.
+    """
+    out = Path(out)
+    if out.exists() and not overwrite:
+        raise ArgenError(f"{out} exists; use --overwrite to replace it")
+    files = [LabelFile(p) for p in paths]
+    try:
+        shards = {}
+        for lf in files:
+            if "shard" not in lf.attrs:
+                raise ArgenError(f"{lf.path} is not a shard (made without argen label --shard)")
+            i, n = (int(v) for v in str(lf.attrs["shard"]).split("/"))
+            if i in shards:
+                raise ArgenError(f"shard {i}/{n} given twice ({shards[i].path}, {lf.path})")
+            shards[i] = lf
+        first = files[0]
+        n = int(str(first.attrs["shard"]).split("/")[1])
+        skip = {"shard", "num_frames", "schema_version"}
+        for lf in files[1:]:
+            for key in set(first.attrs) | set(lf.attrs):
+                if key in skip:
+                    continue
+                a, b = first.attrs.get(key), lf.attrs.get(key)
+                if not np.array_equal(np.asarray(a), np.asarray(b)):
+                    raise ArgenError(f"{lf.path} and {first.path} differ in '{key}': not shards of one labelling run")
+            if int(str(lf.attrs["shard"]).split("/")[1]) != n:
+                raise ArgenError("the files were made with different --shard counts N")
+        missing = sorted(set(range(n)) - set(shards))
+        if missing:
+            raise ArgenError(f"cannot merge: missing shard(s) {', '.join(f'{i}/{n}' for i in missing)}")
+        chunk = int(first.attrs["shard_chunk"])
+        attrs = {k: v for k, v in first.attrs.items() if k not in skip and k != "shard_chunk"}
+        total = sum(lf.num_frames for lf in files)
+        pos = {i: 0 for i in shards}
+        with LabelWriter(out, attrs, first.objects, compression=compression) as w:
+            for k in range((total + chunk - 1) // chunk):
+                lf = shards[k % n]
+                stop = min(pos[k % n] + chunk, lf.num_frames)
+                for j in range(pos[k % n], stop):
+                    w.append(lf.frame(j))
+                pos[k % n] = stop
+        return total
+    finally:
+        for lf in files:
+            lf.close()

@@ -62,3 +62,34 @@ def test_missing_or_foreign_shards_are_refused(shards, tmp_path):
 def test_bad_shard_option(tmp_path, value):
     res = run("capture-sim", "--out", str(tmp_path / "o"), "--shard", value, *ARGS)
     assert res.exit_code == 2 and "--shard" in res.output
+
+
+def h5_contents(path: Path) -> dict:
+    import h5py
+
+    out = {}
+    with h5py.File(path, "r") as f:
+        out["attrs"] = {k: (v.tolist() if hasattr(v, "tolist") else v) for k, v in f.attrs.items()}
+        f.visititems(lambda name, obj: out.__setitem__(name, obj[()]) if isinstance(obj, h5py.Dataset) else None)
+    return out
+
+
+def test_label_shards_merge_to_the_single_run_file(shards, tmp_path):
+    import numpy as np
+
+    ds = shards / "single"
+    common = ["--max-points", "3000", "--chunk", "1", "--quiet"]
+    assert run("label", str(ds), "--out", str(tmp_path / "one.h5"), *common).exit_code == 0
+    for i in range(2):
+        res = run("label", str(ds), "--out", str(tmp_path / f"p{i}.h5"), "--shard", f"{i}/2", *common)
+        assert res.exit_code == 0, res.output
+    res = run("merge", str(tmp_path / "p1.h5"), str(tmp_path / "p0.h5"), "--out", str(tmp_path / "m.h5"))
+    assert res.exit_code == 0, res.output
+    a, b = h5_contents(tmp_path / "one.h5"), h5_contents(tmp_path / "m.h5")
+    assert a.keys() == b.keys() and a.pop("attrs") == b.pop("attrs")
+    for k in a:
+        np.testing.assert_array_equal(a[k], b[k], err_msg=k)
+    res = run("merge", str(tmp_path / "p1.h5"), "--out", str(tmp_path / "m2.h5"))
+    assert res.exit_code == 2 and "missing shard(s) 0/2" in res.output
+    res = run("merge", str(tmp_path / "one.h5"), "--out", str(tmp_path / "m3.h5"))
+    assert res.exit_code == 2 and "not a shard" in res.output
