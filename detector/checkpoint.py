@@ -1,0 +1,117 @@
+"""Checkpoint files: the trained network with everything needed to use it (config, classes, objects,
+normalisation) and, for ``--resume``, the whole training state. Written atomically (temp file + rename).
+
+A checkpoint is a ``torch.save`` dict of plain values and tensors only, read back with
+``torch.load(weights_only=True)``: no pickled code runs when a file is loaded.
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from detector.errors import DetectorError
+
+FORMAT = "detector-checkpoint"
+VERSION = 1
+
+
+@dataclass
+class Checkpoint:
+    """A trained network ready for inference, and what it was trained on.
+
+    model: PoseNet in eval mode on the requested device; class_ids: object id of class index c + 1;
+    objects: the label file's object table as plain lists (ids, names, diameters metres, symmetric,
+    control_points (M, 9, 3) metres, model_points (M, P, 3) metres, sym_transforms per object (S, 4, 4));
+    num_points: points sampled per frame; step: training steps done; extra: train config, metrics;
+    normalisation: the input colour normalisation (see ``detector.data.NORMALISATION``).
+    """
+
+    model: Any
+    model_config: Any
+    class_ids: list[int]
+    objects: dict
+    num_points: int
+    step: int
+    extra: dict
+    normalisation: dict = field(default_factory=dict)
+
+
+def atomic_torch_save(obj: Any, path: Path) -> None:
+    """``torch.save`` to a temporary file beside ``path``, then rename: readers never see half a file."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    try:
+        torch.save(obj, tmp)
+        os.replace(tmp, path)
+    finally:
+        tmp.unlink(missing_ok=True)
+
+
+def save_checkpoint(path: str | Path, *, model: torch.nn.Module, model_config, class_ids: list[int], objects: dict,
+                    num_points: int, step: int, normalisation: dict, extra: dict | None = None,
+                    train_state: dict | None = None) -> Path:
+    """Write a checkpoint atomically; ``train_state`` (optimiser, scheduler, RNG, data position) is for resume."""
+    path = Path(path)
+    payload = {
+        "format": FORMAT,
+        "version": VERSION,
+        "model_state": {k: v.detach().cpu() for k, v in model.state_dict().items()},
+        "model_config": model_config.to_dict(),
+        "class_ids": [int(c) for c in class_ids],
+        "objects": objects,
+        "num_points": int(num_points),
+        "step": int(step),
+        "normalisation": dict(normalisation),
+        "extra": extra or {},
+        "train_state": train_state,
+    }
+    atomic_torch_save(payload, path)
+    return path
+
+
+def read_checkpoint(path: str | Path, device: str | torch.device = "cpu") -> dict:
+    """The raw checkpoint dict, checked to be ours; a missing or foreign file is a :class:`DetectorError`."""
+    path = Path(path)
+    if not path.is_file():
+        raise DetectorError(f"checkpoint not found: {path}")
+    try:
+        payload = torch.load(path, map_location=device, weights_only=True)
+    except Exception as exc:  # torch raises many types for a foreign or truncated file
+        first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+        raise DetectorError(f"{path} is not a readable detector checkpoint ({first})") from None
+    if not isinstance(payload, dict) or payload.get("format") != FORMAT:
+        raise DetectorError(f"{path} is not a detector checkpoint")
+    if payload.get("version") != VERSION:
+        raise DetectorError(f"{path}: checkpoint version {payload.get('version')} is not supported "
+                            f"(this detector reads version {VERSION})")
+    return payload
+
+
+def build_model(payload: dict, path: Path, device: str | torch.device):
+    """The PoseNet of a checkpoint dict with its weights loaded; a mismatch is a :class:`DetectorError`."""
+    from detector.model import ModelConfig, PoseNet
+
+    try:
+        cfg = ModelConfig.from_dict(payload["model_config"])
+        model = PoseNet(cfg, num_classes=len(payload["class_ids"]))
+        model.load_state_dict(payload["model_state"])
+    except (KeyError, TypeError, ValueError, RuntimeError) as exc:
+        first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+        raise DetectorError(f"{path}: the weights do not match the stored model config ({first})") from None
+    return model.to(device), cfg
+
+
+def load_checkpoint(path: str | Path, device: str | torch.device = "cpu") -> Checkpoint:
+    """Load a checkpoint for inference: the model in eval mode on ``device`` plus its metadata."""
+    path = Path(path)
+    payload = read_checkpoint(path, "cpu")
+    model, cfg = build_model(payload, path, device)
+    model.eval()
+    return Checkpoint(model=model, model_config=cfg, class_ids=list(payload["class_ids"]),
+                      objects=payload["objects"], num_points=int(payload["num_points"]), step=int(payload["step"]),
+                      extra=payload.get("extra") or {}, normalisation=payload.get("normalisation") or {})

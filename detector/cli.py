@@ -1,0 +1,151 @@
+"""The ``detector`` command line: parse, call, print. User errors become one line on stderr, exit 2.
+
+Commands: ``train`` (here); ``eval`` and ``predict`` come from ``detector.cli_eval.register(app)``, hooked
+in by :func:`register_commands` below.
+"""
+
+from __future__ import annotations
+
+import functools
+import importlib.util
+import shutil
+from pathlib import Path
+from typing import Optional
+
+import typer
+import yaml
+
+from detector.errors import DetectorError
+
+app = typer.Typer(add_completion=False, no_args_is_help=True, pretty_exceptions_enable=False,
+                  help="detector: a multi-task PointNet++ for 6-DoF pose from depth (train, eval, predict).")
+
+#: Files that mark a folder as a training run (``--overwrite`` removes only such folders).
+RUN_MARKERS = ("config.yaml", "metrics.csv", "last.pt")
+
+
+@app.callback()
+def root() -> None:
+    """detector: a multi-task PointNet++ for 6-DoF pose from depth (train, eval, predict)."""
+
+
+def fail(msg: str, code: int = 2) -> None:
+    """Print one line ``detector: error: MSG`` on stderr and exit with ``code``."""
+    typer.echo(f"detector: error: {msg}", err=True)
+    raise typer.Exit(code)
+
+
+def user_errors(fn):
+    """Turn DetectorError and argen's ArgenError (from reading label files) into one line and exit 2;
+    Ctrl-C into a hint and exit 130."""
+    from argen.errors import ArgenError
+
+    @functools.wraps(fn)
+    def wrapper(*args, **kwargs):
+        try:
+            return fn(*args, **kwargs)
+        except KeyboardInterrupt:
+            fail("interrupted; add --resume to continue from the last checkpoint", 130)
+        except (DetectorError, ArgenError) as exc:
+            fail(str(exc))
+
+    return wrapper
+
+
+def parse_set_options(pairs: list[str]) -> dict:
+    """``["lr=1e-3", "loss.w_conf=2"]`` -> ``{"lr": 0.001, "loss.w_conf": 2}`` (values parsed as YAML)."""
+    out = {}
+    for pair in pairs or []:
+        key, sep, text = pair.partition("=")
+        if not sep or not key.strip():
+            raise DetectorError(f"--set expects KEY=VALUE, got '{pair}'")
+        try:
+            out[key.strip()] = yaml.safe_load(text)
+        except yaml.YAMLError:
+            raise DetectorError(f"--set {key}: cannot parse value '{text}'") from None
+    return out
+
+
+def prepare_run_folder(out: Path, resume: bool, overwrite: bool) -> None:
+    """Refuse to train into an existing run without --resume or --overwrite; --overwrite clears a run folder."""
+    if resume or not out.exists() or (out.is_dir() and not any(out.iterdir())):
+        return
+    if not out.is_dir():
+        raise DetectorError(f"--out {out} exists and is not a folder")
+    if not overwrite:
+        raise DetectorError(f"run folder {out} already exists; add --resume to continue it or --overwrite to replace it")
+    if not any((out / m).exists() for m in RUN_MARKERS):
+        raise DetectorError(f"--overwrite: {out} does not look like a run folder; not removing it")
+    shutil.rmtree(out)
+
+
+@app.command("train")
+@user_errors
+def train_cmd(
+    train_file: Path = typer.Argument(..., help="label file (HDF5) from `argen label`"),
+    out: Path = typer.Option(..., "--out", help="run folder: config.yaml, metrics.csv, last.pt, best.pt"),
+    val: Optional[Path] = typer.Option(None, "--val", help="validation label file (enables best.pt)"),
+    preset: Optional[str] = typer.Option(None, "--preset", help="paper or cpu (default cpu)"),
+    config: Optional[Path] = typer.Option(None, "--config", help="YAML TrainConfig to start from instead of a preset"),
+    steps: Optional[int] = typer.Option(None, "--steps", help="optimiser steps in all"),
+    epochs: Optional[float] = typer.Option(None, "--epochs", help="passes over the training frames (instead of --steps)"),
+    batch_size: Optional[int] = typer.Option(None, "--batch-size"),
+    lr: Optional[float] = typer.Option(None, "--lr", help="peak learning rate (AdamW)"),
+    device: Optional[str] = typer.Option(None, "--device", help="auto, cpu or cuda"),
+    seed: Optional[int] = typer.Option(None, "--seed"),
+    workers: Optional[int] = typer.Option(None, "--workers", help="data-loader processes"),
+    seg_pretrain_steps: Optional[int] = typer.Option(None, "--seg-pretrain-steps",
+                                                     help="first steps train segmentation only"),
+    resume: bool = typer.Option(False, "--resume", help="continue the run in --out from its last.pt"),
+    overwrite: bool = typer.Option(False, "--overwrite", help="replace an existing run folder"),
+    sets: list[str] = typer.Option([], "--set", help="any config key, e.g. --set loss.w_conf=2 --set model.fp_mlps=..."),
+    quiet: bool = typer.Option(False, "--quiet", help="no progress bar"),
+):
+    """Train the multi-task network on a label file; checkpoints and metrics go to --out."""
+    from detector.train import load_config_file, make_config, train
+
+    if steps is not None and epochs is not None:
+        raise DetectorError("give --steps or --epochs, not both")
+    if resume and overwrite:
+        raise DetectorError("--resume and --overwrite exclude each other")
+    overrides = parse_set_options(sets)
+    given = {"batch_size": batch_size, "lr": lr, "device": device, "seed": seed, "num_workers": workers,
+             "seg_pretrain_steps": seg_pretrain_steps}
+    overrides.update({k: v for k, v in given.items() if v is not None})
+    if steps is not None:
+        overrides.update(steps=steps, epochs=None)
+    if epochs is not None:
+        overrides.update(epochs=epochs, steps=None)
+    base = None
+    if resume:
+        if preset is not None or config is not None:
+            raise DetectorError("--resume continues the run's own config.yaml; drop --preset/--config")
+        base = load_config_file(out / "config.yaml")
+    elif config is not None:
+        if preset is not None:
+            raise DetectorError("give --preset or --config, not both")
+        base = load_config_file(config)
+    cfg = make_config(preset or "cpu", overrides, base)
+    prepare_run_folder(out, resume, overwrite)
+    summary = train(cfg, train_file, out, val_path=val, resume=resume, progress=not quiet)
+    typer.echo(f"{out}: {summary.line()}")
+
+
+def register_commands() -> None:
+    """Add the ``eval`` and ``predict`` commands of ``detector.cli_eval`` (when that module is installed)."""
+    if importlib.util.find_spec("detector.cli_eval") is not None:
+        from detector.cli_eval import register
+
+        register(app)
+
+
+register_commands()
+
+
+def main() -> None:
+    """Console script ``detector``."""
+    app(prog_name="detector")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,309 @@
+"""Training and inference batches from ``argen label`` HDF5 files: point sampling, labels, augmentation, indices.
+
+The only detector module that reads label files, and only through :mod:`argen.h5`. Every item is a pure
+function of ``(seed, epoch, frame index)``, so data-loader workers, resumed runs and reruns see the same
+points. Neighbour indices for the network's sampling stages are computed here (in the workers) with
+:func:`detector.ops.precompute_indices`.
+
+Network input ``features`` (N, 9) float32 is ``[X, Y, Z, R', G', B', Nx, Ny, Nz]``: camera-frame metres
+(unchanged: radii and offsets are metric), colour normalised as ``(rgb - rgb_mean) / rgb_std``
+(:data:`NORMALISATION`, stored in checkpoints), unit normals.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+from collections.abc import Iterator, Sequence
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from detector.errors import DetectorError
+
+#: Colour normalisation of the network input; the label file stores colour in [0, 1].
+NORMALISATION: dict[str, float] = {"rgb_mean": 0.5, "rgb_std": 0.25}
+
+#: Augmentation strengths (metres, radians, colour units in [0, 1]).
+JITTER_SIGMA = 0.002
+JITTER_CLIP = 0.005
+ROTATION_MAX = np.deg2rad(15.0)
+BRIGHTNESS = 0.15
+COLOUR_SIGMA = 0.02
+
+
+# ------------------------------------------------------------------------------------------------- helpers
+
+
+def sample_rows(num_rows: int, num_points: int, rng: np.random.Generator) -> np.ndarray:
+    """Rows to feed the network: random without replacement when enough, else all rows then repeats.
+
+    Returns: (num_points,) int64 indices into ``range(num_rows)``, sorted within the distinct part.
+    """
+    if num_rows <= 0:
+        raise DetectorError("a frame has no points")
+    if num_rows >= num_points:
+        return np.sort(rng.choice(num_rows, num_points, replace=False)).astype(np.int64)
+    extra = rng.choice(num_rows, num_points - num_rows, replace=True)
+    return np.concatenate([np.arange(num_rows), extra]).astype(np.int64)
+
+
+def class_index(semantic: np.ndarray, class_ids: Sequence[int]) -> np.ndarray:
+    """Class index of each point: 0 for background or an object not in ``class_ids``, else 1 + its rank.
+
+    semantic: (N,) int object ids (0 = background); class_ids: sorted object ids. Returns (N,) int64.
+    """
+    ids = np.asarray(class_ids, dtype=np.int64)
+    pos = np.searchsorted(ids, semantic)
+    found = (pos < len(ids)) & (ids[np.minimum(pos, len(ids) - 1)] == semantic)
+    return np.where(found, pos + 1, 0).astype(np.int64)
+
+
+def normalise_features(features: np.ndarray, normalisation: dict[str, float] | None = None) -> np.ndarray:
+    """Network input from label-file features: colour centred and scaled, xyz and normals unchanged.
+
+    features: (N, 9) float32 [X, Y, Z, R, G, B, Nx, Ny, Nz] with colour in [0, 1]. Returns (N, 9) float32.
+    """
+    norm = NORMALISATION if normalisation is None else normalisation
+    out = np.array(features, dtype=np.float32, copy=True)
+    out[:, 3:6] = (out[:, 3:6] - norm["rgb_mean"]) / norm["rgb_std"]
+    return out
+
+
+def rot_z(angle: float) -> np.ndarray:
+    """Rotation about the camera's optical (z) axis by ``angle`` radians: (3, 3) float32."""
+    c, s = np.cos(angle), np.sin(angle)
+    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]], dtype=np.float32)
+
+
+def augment(features: np.ndarray, control_points: np.ndarray, rng: np.random.Generator
+            ) -> tuple[np.ndarray, np.ndarray]:
+    """Light augmentation: a small roll about the camera axis (points, normals and labels alike), xyz jitter,
+    brightness and colour noise.
+
+    features: (N, 9) float32, colour in [0, 1]; control_points: (N, 9, 3) float32 metres (zeros = background).
+    Returns new arrays of the same shapes; background control points stay zero.
+    """
+    R = rot_z(rng.uniform(-ROTATION_MAX, ROTATION_MAX))
+    out = np.array(features, dtype=np.float32, copy=True)
+    out[:, 0:3] = out[:, 0:3] @ R.T
+    out[:, 6:9] = out[:, 6:9] @ R.T
+    cps = (control_points @ R.T).astype(np.float32)
+    jitter = np.clip(rng.normal(0.0, JITTER_SIGMA, (len(out), 3)), -JITTER_CLIP, JITTER_CLIP)
+    out[:, 0:3] += jitter.astype(np.float32)
+    gain = rng.uniform(1.0 - BRIGHTNESS, 1.0 + BRIGHTNESS)
+    out[:, 3:6] = np.clip(out[:, 3:6] * gain + rng.normal(0.0, COLOUR_SIGMA, (len(out), 3)), 0.0, 1.0)
+    return out, cps
+
+
+def sampling_indices(xyz: np.ndarray, specs: list[tuple[int, float, int]]) -> dict[str, torch.Tensor]:
+    """The network's sampling / neighbour indices of one cloud as tensors (:func:`detector.ops.precompute_indices`).
+
+    xyz: (N, 3) float32 metres; specs: the model config's ``sampling_specs()``.
+    """
+    from detector.ops import precompute_indices
+
+    out = precompute_indices(np.ascontiguousarray(xyz, dtype=np.float32), specs)
+    return {k: torch.from_numpy(np.ascontiguousarray(v)) for k, v in out.items()}
+
+
+# ------------------------------------------------------------------------------------------------- dataset
+
+
+@contextlib.contextmanager
+def label_file_errors() -> Iterator[None]:
+    """Re-raise argen's ArgenError (a missing, truncated or foreign label file) as a :class:`DetectorError`."""
+    from argen.errors import ArgenError
+
+    try:
+        yield
+    except ArgenError as exc:
+        raise DetectorError(str(exc)) from None
+
+
+def open_label_file(path: str | Path):
+    """Open a label file through :mod:`argen.h5`; a missing or malformed file is a :class:`DetectorError`."""
+    from argen.h5 import LabelFile
+
+    with label_file_errors():
+        return LabelFile(Path(path))
+
+
+def check_frame(frame, path: Path, i: int) -> None:
+    """Raise a one-line :class:`DetectorError` when a frame's arrays have the wrong shape or dtype."""
+    n = len(frame.features)
+    checks = [
+        ("points/features", frame.features, (n, 9), np.floating),
+        ("points/semantic", frame.semantic, (n,), np.integer),
+        ("points/instance", frame.instance, (n,), np.integer),
+        ("control points", frame.control_points, (n, 9, 3), np.floating),
+    ]
+    for name, arr, shape, kind in checks:
+        arr = np.asarray(arr)
+        if arr.shape != shape or not np.issubdtype(arr.dtype, kind):
+            want = "float" if kind is np.floating else "integer"
+            raise DetectorError(f"{path}: frame {i}: {name} has shape {arr.shape} and dtype {arr.dtype}, "
+                                f"expected {shape} {want}")
+    if n == 0:
+        raise DetectorError(f"{path}: frame {i} has no points")
+
+
+class PointDataset(torch.utils.data.Dataset):
+    """Per-frame training items from a label file: ``num_points`` sampled points, labels, sampling indices.
+
+    ``dataset[i]`` is frame ``i`` of epoch 0; ``dataset[(epoch, i)]`` draws the sample of another epoch.
+    An item is a dict of tensors: ``features`` (N, 9) float32 (normalised network input), ``cls`` (N,)
+    int64 (0 = background, c = ``class_ids[c - 1]``), ``instance`` (N,) int64 (-1 = background),
+    ``control_points`` (N, 9, 3) float32 metres, the :func:`detector.ops.precompute_indices` arrays and
+    ``frame`` (int). The label file is opened lazily in each process (never pickled into workers).
+    ``precompute=False`` leaves the indices out (the model then computes them on its device).
+    """
+
+    def __init__(self, path: str | Path, model_cfg, num_points: int, augment: bool = False, seed: int = 0,
+                 class_ids: Sequence[int] | None = None, precompute: bool = True):
+        self.path = Path(path)
+        self.model_cfg = model_cfg
+        self.specs = list(model_cfg.sampling_specs())
+        self.num_points = int(num_points)
+        self.augment = bool(augment)
+        self.seed = int(seed)
+        self.precompute = bool(precompute)
+        if self.specs and self.num_points < self.specs[0][0]:
+            raise DetectorError(f"num_points {self.num_points} is below the first sampling stage's "
+                                f"{self.specs[0][0]} keypoints")
+        self._file = None
+        self._pid = None
+        lf = open_label_file(self.path)
+        try:
+            with label_file_errors():
+                self.num_frames = int(lf.num_frames)
+                self.objects = object_table_dict(lf.objects)
+                if self.num_frames == 0:
+                    raise DetectorError(f"{self.path}: the label file has no frames")
+                check_frame(lf.frame(0), self.path, 0)  # one frame checks the shared datasets' shapes and dtypes
+        finally:
+            lf.close()
+        ids = sorted(int(i) for i in (self.objects["ids"] if class_ids is None else class_ids))
+        if not ids:
+            raise DetectorError(f"{self.path}: no object classes to train on")
+        self.class_ids = ids
+
+    def __len__(self) -> int:
+        return self.num_frames
+
+    def __getstate__(self) -> dict:
+        state = dict(self.__dict__)
+        state["_file"], state["_pid"] = None, None
+        return state
+
+    def _label_file(self):
+        if self._file is None or self._pid != os.getpid():
+            self._file = open_label_file(self.path)
+            self._pid = os.getpid()
+        return self._file
+
+    def close(self) -> None:
+        """Close this process's handle on the label file (reopened on the next item)."""
+        if self._file is not None and self._pid == os.getpid():
+            self._file.close()
+        self._file, self._pid = None, None
+
+    def rng(self, epoch: int, index: int) -> np.random.Generator:
+        """The generator of one item, from (seed, epoch, frame index)."""
+        return np.random.default_rng([self.seed, int(epoch), int(index)])
+
+    def __getitem__(self, key: int | tuple[int, int]) -> dict[str, torch.Tensor]:
+        epoch, index = key if isinstance(key, tuple) else (0, key)
+        index = int(index)
+        if not 0 <= index < self.num_frames:
+            raise IndexError(f"frame {index} out of range (0..{self.num_frames - 1})")
+        with label_file_errors():
+            frame = self._label_file().frame(index)
+        check_frame(frame, self.path, index)
+        rng = self.rng(epoch, index)
+        rows = sample_rows(len(frame.features), self.num_points, rng)
+        feats = np.asarray(frame.features, dtype=np.float32)[rows]
+        cps = np.asarray(frame.control_points, dtype=np.float32)[rows]
+        cls = class_index(np.asarray(frame.semantic)[rows], self.class_ids)
+        instance = np.where(cls > 0, np.asarray(frame.instance)[rows], -1).astype(np.int64)
+        cps = np.where((cls > 0)[:, None, None], cps, 0.0).astype(np.float32)
+        if self.augment:
+            feats, cps = augment(feats, cps, rng)
+        item = sampling_indices(feats[:, :3], self.specs) if self.precompute else {}
+        item.update(features=torch.from_numpy(normalise_features(feats)), cls=torch.from_numpy(cls),
+                    instance=torch.from_numpy(instance), control_points=torch.from_numpy(cps),
+                    frame=torch.tensor(index, dtype=torch.int64))
+        return item
+
+
+def object_table_dict(objects) -> dict:
+    """The label file's object table as plain lists (for checkpoints): ids, names, diameters, symmetric,
+    control_points (M, 9, 3) metres, model_points (M, P, 3) metres, sym_transforms per object (S, 4, 4)."""
+    return {
+        "ids": [int(i) for i in objects.ids],
+        "names": [str(n) for n in objects.names],
+        "diameters": [float(d) for d in objects.diameters],
+        "symmetric": [bool(s) for s in objects.symmetric],
+        "control_points": np.asarray(objects.control_points, dtype=np.float32).tolist(),
+        "model_points": np.asarray(objects.model_points, dtype=np.float32).tolist(),
+        "sym_transforms": [np.asarray(s, dtype=np.float32).tolist() for s in objects.sym_transforms],
+    }
+
+
+def collate(items: Sequence[dict[str, torch.Tensor]]) -> dict[str, torch.Tensor]:
+    """Stack a list of items into a batch: every key gains a leading batch dimension."""
+    return {k: torch.stack([it[k] for it in items]) for k in items[0]}
+
+
+class StreamBatchSampler(torch.utils.data.Sampler):
+    """An endless stream of batches of ``(epoch, frame)`` keys, starting at batch ``start``.
+
+    Epoch ``e`` visits the frames in the order ``default_rng([seed, e]).permutation(num_frames)``; batches
+    are consecutive runs of ``batch_size`` keys of this stream (they may span an epoch boundary), so batch
+    ``b`` is the same whether the run started at 0 or was resumed at ``b``.
+    """
+
+    def __init__(self, num_frames: int, batch_size: int, seed: int, start: int = 0):
+        self.num_frames, self.batch_size, self.seed, self.start = num_frames, batch_size, seed, start
+
+    def keys(self, first: int, count: int) -> list[tuple[int, int]]:
+        """Keys at stream positions ``first .. first + count - 1``."""
+        out, pos = [], first
+        while len(out) < count:
+            epoch, j = divmod(pos, self.num_frames)
+            perm = np.random.default_rng([self.seed, epoch]).permutation(self.num_frames)
+            take = min(count - len(out), self.num_frames - j)
+            out += [(epoch, int(i)) for i in perm[j:j + take]]
+            pos += take
+        return out
+
+    def __iter__(self) -> Iterator[list[tuple[int, int]]]:
+        b = self.start
+        while True:
+            yield self.keys(b * self.batch_size, self.batch_size)
+            b += 1
+
+    def __len__(self) -> int:  # endless; a large number keeps DataLoader happy
+        return 2**62
+
+
+def inference_batch(features: np.ndarray, model_cfg, num_points: int, seed: int = 0,
+                    normalisation: dict[str, float] | None = None, precompute: bool = True) -> dict[str, torch.Tensor]:
+    """A batch of one frame for prediction: the same sampling as training, without augmentation.
+
+    features: (N, 9) float32 [X, Y, Z, R, G, B, Nx, Ny, Nz], metres and colour in [0, 1].
+    Returns ``features`` (1, num_points, 9), the sampling indices (each with a batch dimension) and
+    ``point_index`` (num_points,) int64: the input row of each network point. ``precompute=False`` leaves
+    the indices out (for a model that computes them on the GPU).
+    """
+    feats = np.asarray(features, dtype=np.float32)
+    if feats.ndim != 2 or feats.shape[1] != 9:
+        raise DetectorError(f"features must have shape (N, 9), got {feats.shape}")
+    rows = sample_rows(len(feats), int(num_points), np.random.default_rng(seed))
+    sel = feats[rows]
+    specs = list(model_cfg.sampling_specs())
+    batch = {k: v[None] for k, v in sampling_indices(sel[:, :3], specs).items()} if precompute else {}
+    batch["features"] = torch.from_numpy(normalise_features(sel, normalisation))[None]
+    batch["point_index"] = torch.from_numpy(rows)
+    return batch

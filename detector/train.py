@@ -1,0 +1,516 @@
+"""Training loop: AdamW with a warm-up schedule, optional segmentation-only pre-training, validation,
+atomic checkpoints (``last.pt`` every N steps, ``best.pt`` on validation loss), ``metrics.csv``, exact resume.
+
+A run folder holds ``config.yaml`` (the resolved :class:`TrainConfig`), ``metrics.csv`` (one row per step),
+``last.pt`` and, with a validation file, ``best.pt``. Resuming reloads model, optimiser, scheduler, torch
+RNG and the data position; items are pure functions of (seed, epoch, frame), so the resumed run repeats
+the uninterrupted one step for step.
+"""
+
+from __future__ import annotations
+
+import csv
+import dataclasses
+import difflib
+import math
+import time
+import types
+import typing
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+import yaml
+
+from detector.checkpoint import read_checkpoint, save_checkpoint
+from detector.data import NORMALISATION, PointDataset, StreamBatchSampler, collate
+from detector.errors import DetectorError
+from detector.loss import LossConfig, multitask_loss
+
+#: Keys of a batch that are labels or bookkeeping; every other key is a sampling index for the network.
+LABEL_KEYS = ("features", "cls", "instance", "control_points", "frame", "point_index")
+
+#: Config keys that may differ when resuming (they do not change the numbers of the steps already run).
+RESUME_FREE_KEYS = {"steps", "epochs", "checkpoint_every", "val_every", "val_frames", "num_workers", "device"}
+
+METRIC_FIELDS = ["step", "epoch", "phase", "loss", "cls", "offset", "conf", "lr", "acc", "steps_per_s",
+                 "val_loss", "val_acc"]
+
+
+@dataclass
+class TrainConfig:
+    """Everything that defines a training run (the model is ``preset`` with ``model`` overrides)."""
+
+    preset: str = "cpu"  # model preset of detector.model.preset: "paper" or "cpu"
+    model: dict = field(default_factory=dict)  # ModelConfig field overrides
+    num_points: int = 4096  # points sampled per frame (>= the first stage's keypoints)
+    steps: int | None = 2000  # optimiser steps in all (segmentation pre-training included)
+    epochs: float | None = None  # instead of steps: passes over the training frames
+    batch_size: int = 4
+    lr: float = 2e-3
+    weight_decay: float = 1e-4
+    schedule: str = "cosine"  # cosine (linear warm-up, cosine decay) | onecycle | constant
+    warmup_steps: int = 50
+    min_lr_ratio: float = 0.01  # cosine: final lr = lr * min_lr_ratio
+    grad_clip: float = 10.0  # max gradient norm, 0 = off
+    seg_pretrain_steps: int = 0  # first steps train the segmentation head only (the paper's pre-training)
+    loss: LossConfig = field(default_factory=LossConfig)
+    augment: bool = True
+    class_ids: list[int] | None = None  # object ids to learn; None = all objects of the training file
+    checkpoint_every: int = 200
+    val_every: int = 200
+    val_frames: int = 0  # validation frames per evaluation, 0 = all
+    num_workers: int = 2
+    device: str = "auto"  # auto | cpu | cuda
+    indices: str = "auto"  # where sampling indices are computed: auto | loader | model
+    seed: int = 0
+
+
+#: Training presets: overrides of the TrainConfig defaults (the defaults are the cpu preset).
+TRAIN_PRESETS: dict[str, dict[str, Any]] = {
+    "cpu": {},
+    "paper": {"preset": "paper", "num_points": 16384, "steps": 20000, "batch_size": 4, "lr": 1e-3,
+              "warmup_steps": 500, "seg_pretrain_steps": 2000, "checkpoint_every": 1000, "val_every": 1000},
+}
+
+
+@dataclass
+class TrainSummary:
+    """What a run did: steps, time, the last training losses and the validation result."""
+
+    out_dir: Path
+    start_step: int
+    steps: int
+    seconds: float
+    last: dict  # mean of the last (up to 10) steps: loss, cls, offset, conf, acc
+    val: dict | None  # last validation: loss, cls, offset, conf, acc
+    best_val_loss: float | None
+    checkpoint: Path
+
+    def line(self) -> str:
+        """One line for the terminal."""
+        rate = (self.steps - self.start_step) / self.seconds if self.seconds > 0 else float("nan")
+        txt = (f"{self.steps} steps ({rate:.2f} steps/s), loss {self.last.get('loss', float('nan')):.4f}, "
+               f"point accuracy {self.last.get('acc', float('nan')):.3f}")
+        if self.val:
+            txt += f", val loss {self.val['loss']:.4f}, val accuracy {self.val['acc']:.3f}"
+        return txt + f"; checkpoint {self.checkpoint}"
+
+
+# ------------------------------------------------------------------------------------------------- config
+
+
+def config_from_dict(cls: type, data: Any, where: str = "config") -> Any:
+    """Build dataclass ``cls`` strictly from a mapping: unknown keys and wrong types are DetectorErrors."""
+    if isinstance(data, cls):
+        return data
+    if not isinstance(data, dict):
+        raise DetectorError(f"{where}: expected a mapping, got {data!r}")
+    fields = {f.name: f for f in dataclasses.fields(cls)}
+    hints = typing.get_type_hints(cls)
+    unknown = [k for k in data if k not in fields]
+    if unknown:
+        close = difflib.get_close_matches(str(unknown[0]), fields, n=1)
+        raise DetectorError(f"{where}: unknown key '{unknown[0]}'" + (f" (did you mean '{close[0]}'?)" if close else ""))
+    return cls(**{k: _typed(hints[k], v, f"{where}.{k}") for k, v in data.items()})
+
+
+def _typed(tp: Any, value: Any, where: str) -> Any:
+    """``value`` checked (and ints widened to float) against type hint ``tp``."""
+    if dataclasses.is_dataclass(tp):
+        return config_from_dict(tp, value, where)
+    args = typing.get_args(tp)
+    if typing.get_origin(tp) in (typing.Union, types.UnionType):
+        if value is None and type(None) in args:
+            return None
+        return _typed(next(a for a in args if a is not type(None)), value, where)
+    if typing.get_origin(tp) is list:
+        if not isinstance(value, (list, tuple)):
+            raise DetectorError(f"{where}: expected a list, got {value!r}")
+        return [_typed(args[0], v, where) for v in value]
+    if typing.get_origin(tp) is dict or tp is dict:
+        if not isinstance(value, dict):
+            raise DetectorError(f"{where}: expected a mapping, got {value!r}")
+        return dict(value)
+    ok = {bool: lambda v: isinstance(v, bool),
+          int: lambda v: isinstance(v, int) and not isinstance(v, bool),
+          float: lambda v: isinstance(v, (int, float)) and not isinstance(v, bool),
+          str: lambda v: isinstance(v, str)}.get(tp, lambda v: True)
+    if not ok(value):
+        raise DetectorError(f"{where}: expected {getattr(tp, '__name__', tp)}, got {value!r}")
+    return float(value) if tp is float else value
+
+
+def config_to_dict(cfg: Any) -> dict:
+    """Plain nested dict of a config dataclass (for YAML and checkpoints)."""
+    return dataclasses.asdict(cfg)
+
+
+def set_dotted(data: dict, key: str, value: Any) -> None:
+    """Set ``data["loss"]["w_conf"] = value`` for key ``"loss.w_conf"`` (``model.*`` keys may be new)."""
+    parts = key.split(".")
+    node = data
+    for p in parts[:-1]:
+        if not isinstance(node.get(p), dict):
+            raise DetectorError(f"unknown option '{key}'")
+        node = node[p]
+    if parts[-1] not in node and parts[0] != "model":
+        close = difflib.get_close_matches(parts[-1], list(node), n=1)
+        raise DetectorError(f"unknown option '{key}'" + (f" (did you mean '{close[0]}'?)" if close else ""))
+    node[parts[-1]] = value
+
+
+def make_config(preset: str = "cpu", overrides: dict[str, Any] | None = None, base: TrainConfig | None = None
+                ) -> TrainConfig:
+    """A validated TrainConfig: ``base`` (or the training preset) with dotted ``overrides`` applied."""
+    if base is None:
+        if preset not in TRAIN_PRESETS:
+            raise DetectorError(f"unknown preset '{preset}' (available: {', '.join(sorted(TRAIN_PRESETS))})")
+        data = config_to_dict(TrainConfig())
+        data.update(TRAIN_PRESETS[preset])
+    else:
+        data = config_to_dict(base)
+    for key, value in (overrides or {}).items():
+        set_dotted(data, key, value)
+    cfg = config_from_dict(TrainConfig, data)
+    validate_config(cfg)
+    return cfg
+
+
+def load_config_file(path: str | Path) -> TrainConfig:
+    """A TrainConfig from a YAML file (e.g. a run folder's ``config.yaml``)."""
+    path = Path(path)
+    if not path.is_file():
+        raise DetectorError(f"config file not found: {path}")
+    try:
+        data = yaml.safe_load(path.read_text()) or {}
+    except yaml.YAMLError as exc:
+        raise DetectorError(f"{path} is not valid YAML: {str(exc).splitlines()[0]}") from None
+    cfg = config_from_dict(TrainConfig, data, where=path.name)
+    validate_config(cfg)
+    return cfg
+
+
+def validate_config(cfg: TrainConfig) -> None:
+    """Range checks; a bad value is a one-line DetectorError naming the key."""
+    checks = [
+        (cfg.steps is None or cfg.steps >= 1, "steps must be at least 1"),
+        (cfg.epochs is None or cfg.epochs > 0, "epochs must be positive"),
+        ((cfg.steps is None) != (cfg.epochs is None), "give either steps or epochs"),
+        (cfg.batch_size >= 1, "batch_size must be at least 1"),
+        (cfg.num_points >= 1, "num_points must be at least 1"),
+        (cfg.lr > 0 and cfg.weight_decay >= 0, "lr must be positive and weight_decay non-negative"),
+        (cfg.schedule in ("cosine", "onecycle", "constant"), "schedule must be cosine, onecycle or constant"),
+        (cfg.warmup_steps >= 0 and 0 <= cfg.min_lr_ratio <= 1, "warmup_steps >= 0 and min_lr_ratio in [0, 1]"),
+        (cfg.grad_clip >= 0 and cfg.seg_pretrain_steps >= 0, "grad_clip and seg_pretrain_steps must be >= 0"),
+        (cfg.checkpoint_every >= 1 and cfg.val_every >= 1, "checkpoint_every and val_every must be at least 1"),
+        (cfg.num_workers >= 0 and cfg.val_frames >= 0, "num_workers and val_frames must be >= 0"),
+        (cfg.device in ("auto", "cpu", "cuda"), "device must be auto, cpu or cuda"),
+        (cfg.indices in ("auto", "loader", "model"), "indices must be auto, loader or model"),
+    ]
+    for ok, msg in checks:
+        if not ok:
+            raise DetectorError(f"config: {msg}")
+
+
+def build_model_config(cfg: TrainConfig):
+    """The ModelConfig of a run: the model preset with the config's ``model`` overrides."""
+    from detector.model import ModelConfig, preset
+
+    try:
+        base = preset(cfg.preset).to_dict()
+    except (KeyError, ValueError) as exc:
+        raise DetectorError(f"unknown model preset '{cfg.preset}' ({exc})") from None
+    unknown = [k for k in cfg.model if k not in base]
+    if unknown:
+        raise DetectorError(f"config: unknown model option '{unknown[0]}' (known: {', '.join(base)})")
+    try:
+        return ModelConfig.from_dict({**base, **cfg.model})
+    except (TypeError, ValueError) as exc:
+        raise DetectorError(f"config: bad model options ({exc})") from None
+
+
+def resolve_device(name: str) -> torch.device:
+    """``auto`` -> cuda when available else cpu; asking for cuda without one is a DetectorError."""
+    if name == "cuda" and not torch.cuda.is_available():
+        raise DetectorError("--device cuda: no CUDA device is available")
+    return torch.device("cuda" if name == "cuda" or (name == "auto" and torch.cuda.is_available()) else "cpu")
+
+
+def total_steps(cfg: TrainConfig, num_frames: int) -> int:
+    """Optimiser steps of the run: ``steps``, or ``ceil(epochs * frames / batch_size)``."""
+    if cfg.steps is not None:
+        return cfg.steps
+    return max(1, math.ceil(cfg.epochs * num_frames / cfg.batch_size))
+
+
+def lr_factor(step: int, total: int, cfg: TrainConfig) -> float:
+    """Learning-rate multiplier at ``step`` (0-based) of ``total``: warm-up, then the schedule's decay."""
+    warm = min(cfg.warmup_steps, max(total - 1, 0))
+    if cfg.schedule == "onecycle":  # cosine ramp from lr/25 to lr, cosine decay to lr/1e4 (torch OneCycleLR shape)
+        lo, end = 1 / 25, 1e-4
+        if step < warm:
+            return lo + (1 - lo) * 0.5 * (1 - math.cos(math.pi * step / warm))
+        frac = (step - warm) / max(total - warm, 1)
+        return end + (1 - end) * 0.5 * (1 + math.cos(math.pi * min(frac, 1.0)))
+    if step < warm:
+        return (step + 1) / (warm + 1)
+    if cfg.schedule == "constant":
+        return 1.0
+    frac = (step - warm) / max(total - warm, 1)
+    return cfg.min_lr_ratio + (1 - cfg.min_lr_ratio) * 0.5 * (1 + math.cos(math.pi * min(frac, 1.0)))
+
+
+# ------------------------------------------------------------------------------------------------- steps
+
+
+def split_batch(batch: dict[str, torch.Tensor], device: torch.device, use_indices: bool
+                ) -> tuple[torch.Tensor, dict[str, torch.Tensor] | None]:
+    """Network input of a batch: features (B, N, 9) and the sampling indices (or None) on ``device``."""
+    feats = batch["features"].to(device, non_blocking=True)
+    if not use_indices:
+        return feats, None
+    return feats, {k: v.to(device, non_blocking=True) for k, v in batch.items() if k not in LABEL_KEYS}
+
+
+def keypoint_targets(batch: dict[str, torch.Tensor], keypoints: torch.Tensor) -> dict[str, torch.Tensor]:
+    """Labels of the network's K keypoints: ``cls`` (B, K) int64 and ``control_points`` (B, K, 9, 3) metres.
+
+    keypoints: (B, K) int64 indices into the batch's N points (the model's ``out["keypoints"]``).
+    """
+    kp = keypoints.to(batch["cls"].device)
+    cls = torch.gather(batch["cls"], 1, kp)
+    cps = torch.gather(batch["control_points"], 1, kp[:, :, None, None].expand(-1, -1, 9, 3))
+    return {"cls": cls.to(keypoints.device), "control_points": cps.to(keypoints.device)}
+
+
+def forward_loss(model: torch.nn.Module, batch: dict[str, torch.Tensor], loss_cfg: LossConfig, device: torch.device,
+                 use_indices: bool) -> tuple[torch.Tensor, dict[str, float]]:
+    """Forward a batch and return the loss and its parts, plus ``acc``: keypoint segmentation accuracy."""
+    feats, idx = split_batch(batch, device, use_indices)
+    out = model(feats, idx)
+    target = keypoint_targets(batch, out["keypoints"])
+    loss, parts = multitask_loss(out, target, loss_cfg)
+    parts = {k: float(v) for k, v in parts.items()}
+    parts["acc"] = float((out["logits"].argmax(-1) == target["cls"]).float().mean())
+    return loss, parts
+
+
+@torch.no_grad()
+def evaluate(model: torch.nn.Module, dataset: PointDataset, cfg: TrainConfig, device: torch.device,
+             use_indices: bool) -> dict[str, float]:
+    """Mean loss parts and keypoint accuracy over (the first ``val_frames`` of) ``dataset``, epoch 0, no grad."""
+    n = len(dataset) if cfg.val_frames == 0 else min(cfg.val_frames, len(dataset))
+    batches = [[(0, i) for i in range(s, min(s + cfg.batch_size, n))] for s in range(0, n, cfg.batch_size)]
+    loader = torch.utils.data.DataLoader(dataset, batch_sampler=batches, collate_fn=collate,
+                                         num_workers=min(cfg.num_workers, len(batches)),
+                                         generator=loader_generator(cfg.seed))
+    was_training = model.training
+    model.eval()
+    sums: dict[str, float] = {}
+    for keys, batch in zip(batches, loader):
+        _, parts = forward_loss(model, batch, cfg.loss, device, use_indices)
+        for k, v in parts.items():
+            sums[k] = sums.get(k, 0.0) + v * len(keys)
+    model.train(was_training)
+    out = {k: v / n for k, v in sums.items()}
+    out["loss"] = out.pop("total")
+    return out
+
+
+# ------------------------------------------------------------------------------------------------- metrics
+
+
+class MetricsLog:
+    """``metrics.csv``: one row per step; on resume the rows after the checkpoint's step are dropped."""
+
+    def __init__(self, path: Path, keep_until: int | None):
+        self.path = path
+        rows = []
+        if keep_until is not None and path.is_file():
+            with path.open(newline="") as f:
+                rows = [r for r in csv.DictReader(f) if int(r["step"]) <= keep_until]
+        self.file = path.open("w", newline="")
+        self.writer = csv.DictWriter(self.file, fieldnames=METRIC_FIELDS)
+        self.writer.writeheader()
+        self.writer.writerows(rows)
+        self.file.flush()
+
+    def write(self, row: dict) -> None:
+        """Append one row (floats with 9 significant digits) and flush."""
+        self.writer.writerow({k: (f"{v:.9g}" if isinstance(v, float) else v) for k, v in row.items()})
+        self.file.flush()
+
+    def close(self) -> None:
+        self.file.close()
+
+
+def read_metrics(path: str | Path) -> list[dict]:
+    """Rows of a ``metrics.csv`` with numbers parsed (empty cells become None)."""
+    def num(v: str):
+        if v == "":
+            return None
+        try:
+            return int(v)
+        except ValueError:
+            try:
+                return float(v)
+            except ValueError:
+                return v
+
+    with Path(path).open(newline="") as f:
+        return [{k: num(v) for k, v in r.items()} for r in csv.DictReader(f)]
+
+
+# ------------------------------------------------------------------------------------------------- train
+
+
+def _worker_init(_: int) -> None:
+    torch.set_num_threads(1)
+
+
+def loader_generator(seed: int) -> torch.Generator:
+    """A DataLoader's own generator: creating an iterator would otherwise draw from torch's global generator
+    and shift the dropout stream of a resumed run (the items are keyed by (seed, epoch, frame), not seeded by it)."""
+    return torch.Generator().manual_seed(seed)
+
+
+def rng_state(device: torch.device) -> dict:
+    """Torch's CPU (and CUDA) generator states, for exact resume."""
+    state = {"cpu": torch.get_rng_state()}
+    if device.type == "cuda":
+        state["cuda"] = torch.cuda.get_rng_state(device)
+    return state
+
+
+def set_rng_state(state: dict, device: torch.device) -> None:
+    torch.set_rng_state(state["cpu"].cpu())
+    if device.type == "cuda" and "cuda" in state:
+        torch.cuda.set_rng_state(state["cuda"].cpu(), device)
+
+
+def check_resumable(saved: dict, cfg: TrainConfig, path: Path) -> None:
+    """A resumed run must use the settings that produced the checkpoint (bar RESUME_FREE_KEYS)."""
+    now = config_to_dict(cfg)
+    for key in sorted(set(saved) | set(now)):
+        if key not in RESUME_FREE_KEYS and saved.get(key) != now.get(key):
+            raise DetectorError(f"{path}: cannot resume with {key}={now.get(key)!r}; the run used "
+                                f"{key}={saved.get(key)!r}")
+
+
+def train(cfg: TrainConfig, train_path: str | Path, out_dir: str | Path, val_path: str | Path | None = None,
+          resume: bool = False, progress: bool = True, stop_after: int | None = None) -> TrainSummary:
+    """Train a PoseNet on a label file; write checkpoints and metrics to ``out_dir``; return a summary.
+
+    ``stop_after``: end after this step as if interrupted there (``last.pt`` is written; ``resume=True``
+    continues the same schedule), e.g. to train in time-boxed pieces.
+    """
+    from tqdm import tqdm
+
+    from detector.model import PoseNet
+
+    validate_config(cfg)
+    out_dir = Path(out_dir)
+    last_path = out_dir / "last.pt"
+    if resume and not last_path.is_file():
+        raise DetectorError(f"nothing to resume: {last_path} does not exist")
+    if not resume and last_path.exists():
+        raise DetectorError(f"{out_dir} already holds a run; resume it or choose another folder")
+    device = resolve_device(cfg.device)
+    use_indices = cfg.indices == "loader" or (cfg.indices == "auto" and device.type == "cpu")
+    model_cfg = build_model_config(cfg)
+    ds = PointDataset(train_path, model_cfg, cfg.num_points, augment=cfg.augment, seed=cfg.seed,
+                      class_ids=cfg.class_ids, precompute=use_indices)
+    val_ds = None
+    if val_path is not None:
+        val_ds = PointDataset(val_path, model_cfg, cfg.num_points, augment=False, seed=cfg.seed,
+                              class_ids=ds.class_ids, precompute=use_indices)
+    total = total_steps(cfg, len(ds))
+    devices = [device] if device.type == "cuda" else []
+    with torch.random.fork_rng(devices=devices):
+        torch.manual_seed(cfg.seed)
+        model = PoseNet(model_cfg, num_classes=len(ds.class_ids)).to(device)
+        opt = torch.optim.AdamW(model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
+        sched = torch.optim.lr_scheduler.LambdaLR(opt, lambda s: lr_factor(s, total, cfg))
+        start, best, val = 0, None, None
+        if resume:
+            payload = read_checkpoint(last_path, device)
+            state = payload.get("train_state") or {}
+            if "optimizer" not in state:
+                raise DetectorError(f"{last_path} holds no training state to resume from")
+            check_resumable(state["config"], cfg, last_path)
+            model.load_state_dict(payload["model_state"])
+            opt.load_state_dict(state["optimizer"])
+            sched.load_state_dict(state["scheduler"])
+            set_rng_state(state["rng"], device)
+            start, best, val = int(payload["step"]), state.get("best_val_loss"), state.get("val")
+        out_dir.mkdir(parents=True, exist_ok=True)
+        (out_dir / "config.yaml").write_text(yaml.safe_dump(config_to_dict(cfg), sort_keys=False))
+        log = MetricsLog(out_dir / "metrics.csv", keep_until=start if resume else None)
+
+        def save(path: Path, step: int) -> None:
+            extra = {"train_config": config_to_dict(cfg), "train_file": str(train_path), "val": val}
+            train_state = {"optimizer": opt.state_dict(), "scheduler": sched.state_dict(), "rng": rng_state(device),
+                           "data_position": step * cfg.batch_size, "config": config_to_dict(cfg),
+                           "best_val_loss": best, "val": val, "total_steps": total}
+            save_checkpoint(path, model=model, model_config=model_cfg, class_ids=ds.class_ids, objects=ds.objects,
+                            num_points=cfg.num_points, step=step, normalisation=NORMALISATION, extra=extra,
+                            train_state=train_state if path == last_path else None)
+
+        sampler = StreamBatchSampler(len(ds), cfg.batch_size, cfg.seed, start=start)
+        loader = torch.utils.data.DataLoader(ds, batch_sampler=sampler, collate_fn=collate,
+                                             num_workers=cfg.num_workers, worker_init_fn=_worker_init,
+                                             pin_memory=device.type == "cuda",
+                                             generator=loader_generator(cfg.seed))
+        seg_cfg = dataclasses.replace(cfg.loss, seg_only=True)
+        recent: list[dict] = []
+        bar = tqdm(total=total, initial=start, disable=not progress, dynamic_ncols=True, desc="train")
+        t0 = t_last = time.perf_counter()
+        step = start
+        batches = iter(loader)
+        model.train()
+        end = total if stop_after is None else min(total, stop_after)
+        try:
+            while step < end:
+                batch = next(batches)
+                phase = "seg" if step < cfg.seg_pretrain_steps else "full"
+                lr = opt.param_groups[0]["lr"]
+                loss, parts = forward_loss(model, batch, seg_cfg if phase == "seg" else cfg.loss, device,
+                                           use_indices)
+                opt.zero_grad(set_to_none=True)
+                loss.backward()
+                if cfg.grad_clip > 0:
+                    torch.nn.utils.clip_grad_norm_(model.parameters(), cfg.grad_clip)
+                opt.step()
+                sched.step()
+                step += 1
+                now = time.perf_counter()
+                row = {"step": step, "epoch": step * cfg.batch_size / len(ds), "phase": phase,
+                       "loss": parts["total"], "cls": parts["cls"], "offset": parts["offset"], "conf": parts["conf"],
+                       "lr": lr, "acc": parts["acc"], "steps_per_s": 1.0 / max(now - t_last, 1e-9)}
+                t_last = now
+                recent = (recent + [row])[-10:]
+                if val_ds is not None and (step % cfg.val_every == 0 or step == total):
+                    val = evaluate(model, val_ds, cfg, device, use_indices)
+                    row.update(val_loss=val["loss"], val_acc=val["acc"])
+                    if best is None or val["loss"] < best:
+                        best = val["loss"]
+                        save(out_dir / "best.pt", step)
+                log.write(row)
+                bar.set_postfix_str(f"loss {row['loss']:.3f} cls {row['cls']:.3f} off {row['offset']:.4f} "
+                                    f"conf {row['conf']:.3f} acc {row['acc']:.3f} lr {lr:.2e}", refresh=False)
+                bar.update(1)
+                if step % cfg.checkpoint_every == 0 or step == end:
+                    save(last_path, step)
+        finally:
+            del batches  # stops the loader workers now
+            bar.close()
+            log.close()
+            ds.close()
+            if val_ds is not None:
+                val_ds.close()
+    last = {k: float(np.mean([r[k] for r in recent])) for k in ("loss", "cls", "offset", "conf", "acc")} if recent else {}
+    return TrainSummary(out_dir=out_dir, start_step=start, steps=step, seconds=time.perf_counter() - t0, last=last,
+                        val=val, best_val_loss=best, checkpoint=last_path)
