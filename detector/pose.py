@@ -1,0 +1,271 @@
+"""From per-point network output to 6-DoF poses (paper section "6-DOF Pose Estimation").
+
+Pipeline: drop background points and points with confidence under ``tau``; each kept point's control
+points = point + offsets; per class, the predicted box centres vote on a voxel grid and connected
+occupied cells form instances (so several instances of one object are found); a robust aggregate of
+the instance's votes is fitted to the model's 9 control points with a confidence-weighted,
+reflection-safe Kabsch; non-maximum suppression by confidence; optional point-to-plane ICP (open3d)
+between the instance's scene points and the model points.
+
+Pure numpy (open3d only inside :func:`icp_refine`); metres; poses map model points into the camera frame
+(``x_cam = R @ x_model + t``).
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+import scipy.sparse
+import scipy.sparse.csgraph
+
+# the 27 offsets of a voxel's 26-neighbourhood (and itself)
+_NEIGHBOURS = np.stack(np.meshgrid(*[np.arange(-1, 2)] * 3, indexing="ij"), -1).reshape(-1, 3)
+
+
+@dataclass
+class PoseConfig:
+    """Options of the pose stage.
+
+    tau: confidence threshold; cell: voting voxel size, metres; min_votes: fewest votes an instance needs;
+    nms_fraction: centres closer than this fraction of the object's diameter are one detection;
+    inlier_fraction: votes farther than this fraction of the diameter from the median are outliers;
+    icp: refine with ICP; icp_distance: ICP correspondence distance as a fraction of the diameter;
+    icp_iterations: ICP iteration limit; icp_min_points: fewest scene points to run ICP.
+    """
+
+    tau: float = 0.8
+    cell: float = 0.02
+    min_votes: int = 3
+    nms_fraction: float = 0.5
+    inlier_fraction: float = 0.15
+    icp: bool = False
+    icp_distance: float = 0.1
+    icp_iterations: int = 30
+    icp_min_points: int = 10
+
+
+@dataclass
+class Detection:
+    """One detected object instance.
+
+    obj_id: object id; score: mean confidence of its votes x share of kept votes in [0, 1];
+    R: (3,3) float64; t: (3,) float64 metres (model -> camera); support: number of votes;
+    control_points: (9,3) float64 metres, the aggregated predicted control points (camera frame);
+    members: (S,) int64 rows of the prediction arrays that voted for it; refined: ICP was applied.
+    """
+
+    obj_id: int
+    score: float
+    R: np.ndarray
+    t: np.ndarray
+    support: int
+    control_points: np.ndarray
+    members: np.ndarray = field(repr=False)
+    refined: bool = False
+
+    @property
+    def pose(self) -> np.ndarray:
+        """(4,4) float64 T_cam_model, metres."""
+        T = np.eye(4)
+        T[:3, :3], T[:3, 3] = self.R, self.t
+        return T
+
+
+def predicted_control_points(xyz: np.ndarray, offsets: np.ndarray) -> np.ndarray:
+    """Control points predicted by each point: its position plus its offsets.
+
+    xyz: (K,3) metres; offsets: (K,9,3) metres. Returns (K,9,3) metres.
+    """
+    return np.asarray(xyz)[:, None, :] + np.asarray(offsets)
+
+
+def keep_mask(obj_ids: np.ndarray, confidence: np.ndarray, tau: float) -> np.ndarray:
+    """Points that are foreground and at least ``tau`` confident. obj_ids: (K,) int, 0 = background; confidence: (K,)."""
+    return (np.asarray(obj_ids) > 0) & (np.asarray(confidence) >= tau)
+
+
+def vote_clusters(centres: np.ndarray, cell: float) -> tuple[np.ndarray, np.ndarray]:
+    """Cluster votes: occupied voxels of size ``cell`` that touch (26-neighbourhood) form one cluster.
+
+    centres: (V,3) metres. Returns labels (V,) int64 cluster of each vote, counts (C,) int64 votes per cluster.
+    """
+    centres = np.asarray(centres, np.float64)
+    if len(centres) == 0:
+        return np.zeros(0, np.int64), np.zeros(0, np.int64)
+    keys = np.floor(centres / cell).astype(np.int64)
+    cells, vote_cell = np.unique(keys, axis=0, return_inverse=True)
+    vote_cell = vote_cell.reshape(-1)
+    lo = cells.min(0) - 1
+    dims = cells.max(0) + 2 - lo
+    flat = np.ravel_multi_index((cells - lo).T, dims)  # sorted, since cells are sorted lexicographically
+    nb = cells[:, None, :] + _NEIGHBOURS[None]  # (U,27,3)
+    nb_flat = np.ravel_multi_index((nb - lo).reshape(-1, 3).T, dims)
+    pos = np.clip(np.searchsorted(flat, nb_flat), 0, len(flat) - 1)
+    hit = flat[pos] == nb_flat
+    src = np.repeat(np.arange(len(cells)), len(_NEIGHBOURS))[hit]
+    graph = scipy.sparse.coo_matrix((np.ones(hit.sum()), (src, pos[hit])), shape=(len(cells), len(cells)))
+    _, cell_label = scipy.sparse.csgraph.connected_components(graph, directed=False)
+    labels = cell_label[vote_cell].astype(np.int64)
+    return labels, np.bincount(labels).astype(np.int64)
+
+
+def robust_control_points(votes: np.ndarray, weights: np.ndarray, diameter: float,
+                          inlier_fraction: float = 0.15) -> tuple[np.ndarray, np.ndarray]:
+    """A robust aggregate of control-point votes: weighted mean of the votes near the per-coordinate median.
+
+    votes: (V,9,3) metres; weights: (V,) >= 0; diameter: object diameter, metres. A vote is an inlier when its
+    mean distance to the median control points is under ``inlier_fraction * diameter`` (the median itself is
+    used when no vote is). Returns control points (9,3) float64 metres, inlier mask (V,) bool.
+    """
+    votes = np.asarray(votes, np.float64)
+    med = np.median(votes, axis=0)
+    dist = np.linalg.norm(votes - med, axis=2).mean(1)
+    inl = dist < inlier_fraction * diameter
+    w = np.asarray(weights, np.float64) * inl
+    if w.sum() <= 0:
+        return med, inl
+    return np.einsum("v,vij->ij", w, votes) / w.sum(), inl
+
+
+def kabsch(src: np.ndarray, dst: np.ndarray, weights: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Weighted least-squares rigid transform with ``dst ~ R @ src + t`` (SVD, never a reflection).
+
+    src, dst: (n,3) metres, n >= 3 not collinear; weights: (n,) >= 0 or None. Returns R (3,3), t (3,) float64.
+    """
+    src, dst = np.asarray(src, np.float64), np.asarray(dst, np.float64)
+    w = np.ones(len(src)) if weights is None else np.asarray(weights, np.float64)
+    w = w / w.sum()
+    cs, cd = w @ src, w @ dst
+    H = (src - cs).T @ ((dst - cd) * w[:, None])
+    U, _, Vt = np.linalg.svd(H)
+    d = np.sign(np.linalg.det(Vt.T @ U.T)) or 1.0
+    R = Vt.T @ np.diag([1.0, 1.0, d]) @ U.T
+    return R, cd - R @ cs
+
+
+def nms(detections: list[Detection], diameters: dict[int, float], fraction: float) -> list[Detection]:
+    """Non-maximum suppression by score: drop a detection whose centre lies within ``fraction`` of the
+    object's diameter (metres, per obj_id) of a higher-scoring detection of the same object. Returns kept, by score."""
+    kept: list[Detection] = []
+    for d in sorted(detections, key=lambda d: -d.score):
+        if all(k.obj_id != d.obj_id or np.linalg.norm(k.t - d.t) >= fraction * diameters[d.obj_id] for k in kept):
+            kept.append(d)
+    return kept
+
+
+def _model_cloud(model_points: np.ndarray):
+    """An open3d cloud of model points (metres) with estimated normals (their sign does not matter)."""
+    import open3d as o3d
+
+    pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(model_points, np.float64)))
+    pc.estimate_normals(o3d.geometry.KDTreeSearchParamKNN(12))
+    return pc
+
+
+def icp_refine(scene_points: np.ndarray, model_points: np.ndarray, R: np.ndarray, t: np.ndarray,
+               max_distance: float, iterations: int = 30, model_cloud=None) -> tuple[np.ndarray, np.ndarray]:
+    """Refine a pose with point-to-plane ICP (open3d) of the instance's scene points onto the model.
+
+    The scene (a partial view) is registered to the model surface, so every scene point has a true match.
+    scene_points: (S,3) camera frame, metres; model_points: (P,3) model frame, metres; R (3,3), t (3,) the
+    initial T_cam_model; max_distance: correspondence distance, metres; model_cloud: a cached
+    :func:`_model_cloud` of ``model_points``. Returns the refined R (3,3), t (3,) float64.
+    """
+    import open3d as o3d
+
+    reg = o3d.pipelines.registration
+    target = model_cloud if model_cloud is not None else _model_cloud(model_points)
+    source = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(scene_points, np.float64)))
+    T0 = np.eye(4)
+    T0[:3, :3], T0[:3, 3] = R, t
+    init = np.linalg.inv(T0)  # camera -> model
+    res = reg.registration_icp(source, target, max_distance, init, reg.TransformationEstimationPointToPlane(),
+                               reg.ICPConvergenceCriteria(max_iteration=iterations))
+    if len(res.correspondence_set) < 3:
+        return np.asarray(R, np.float64), np.asarray(t, np.float64)
+    T = np.linalg.inv(np.asarray(res.transformation))
+    return T[:3, :3], T[:3, 3]
+
+
+@dataclass
+class ObjectInfo:
+    """What the pose stage needs of each object, by obj_id.
+
+    control_points: {obj_id: (9,3) metres model frame}; diameters: {obj_id: metres};
+    model_points: {obj_id: (P,3) metres model frame}.
+    """
+
+    control_points: dict[int, np.ndarray]
+    diameters: dict[int, float]
+    model_points: dict[int, np.ndarray]
+    _clouds: dict = field(default_factory=dict, repr=False)
+
+    @classmethod
+    def from_table(cls, table) -> "ObjectInfo":
+        """From an ``argen.h5.ObjectTable`` or the checkpoint's plain-list object dict."""
+        get = (lambda k: table[k]) if isinstance(table, dict) else (lambda k: getattr(table, k))
+        ids = [int(i) for i in get("ids")]
+        cps, dia, mp = get("control_points"), get("diameters"), get("model_points")
+        return cls({i: np.asarray(cps[k], np.float64) for k, i in enumerate(ids)},
+                   {i: float(dia[k]) for k, i in enumerate(ids)},
+                   {i: np.asarray(mp[k], np.float64) for k, i in enumerate(ids)})
+
+    def cloud(self, obj_id: int):
+        """The cached open3d model cloud with normals of ``obj_id``."""
+        if obj_id not in self._clouds:
+            self._clouds[obj_id] = _model_cloud(self.model_points[obj_id])
+        return self._clouds[obj_id]
+
+
+def detect(xyz: np.ndarray, obj_ids: np.ndarray, confidence: np.ndarray, control_points: np.ndarray,
+           objects: ObjectInfo, cfg: PoseConfig, timings: dict | None = None) -> list[Detection]:
+    """Instances and their Kabsch poses from per-point predictions (no ICP).
+
+    xyz: (K,3) metres; obj_ids: (K,) int predicted object id, 0 = background; confidence: (K,) in [0,1];
+    control_points: (K,9,3) metres camera frame (point + offsets). Classes unknown to ``objects`` are ignored.
+    timings: optional dict to which "voting" and "kabsch" seconds are added. Returns detections by score.
+    """
+    t0 = time.perf_counter()
+    obj_ids = np.asarray(obj_ids)
+    keep = keep_mask(obj_ids, confidence, cfg.tau) & np.isin(obj_ids, list(objects.diameters))
+    groups = []
+    for oid in np.unique(obj_ids[keep]):
+        rows = np.flatnonzero(keep & (obj_ids == oid))
+        labels, counts = vote_clusters(control_points[rows, 8], cfg.cell)
+        for c in np.flatnonzero(counts >= cfg.min_votes):
+            groups.append((int(oid), rows[labels == c]))
+    t1 = time.perf_counter()
+    dets = []
+    for oid, members in groups:
+        w = np.asarray(confidence, np.float64)[members]
+        cps, inl = robust_control_points(control_points[members], w, objects.diameters[oid], cfg.inlier_fraction)
+        R, t = kabsch(objects.control_points[oid], cps)
+        score = float(w[inl].mean() * inl.mean()) if inl.any() else 0.0
+        dets.append(Detection(oid, score, R, t, len(members), cps, members[inl] if inl.any() else members))
+    dets = nms(dets, objects.diameters, cfg.nms_fraction)
+    if timings is not None:
+        timings["voting"] = timings.get("voting", 0.0) + t1 - t0
+        timings["kabsch"] = timings.get("kabsch", 0.0) + time.perf_counter() - t1
+    return dets
+
+
+def refine(detections: list[Detection], xyz: np.ndarray, objects: ObjectInfo, cfg: PoseConfig,
+           timings: dict | None = None) -> list[Detection]:
+    """ICP-refined copies of ``detections`` using each one's member points ``xyz[members]`` (metres).
+
+    Detections with fewer than ``cfg.icp_min_points`` members are returned unchanged. Adds "icp" seconds to timings.
+    """
+    t0 = time.perf_counter()
+    out = []
+    for d in detections:
+        if len(d.members) < cfg.icp_min_points:
+            out.append(d)
+            continue
+        R, t = icp_refine(xyz[d.members], objects.model_points[d.obj_id], d.R, d.t,
+                          cfg.icp_distance * objects.diameters[d.obj_id], cfg.icp_iterations, objects.cloud(d.obj_id))
+        out.append(Detection(d.obj_id, d.score, R, t, d.support, d.control_points, d.members, refined=True))
+    if timings is not None:
+        timings["icp"] = timings.get("icp", 0.0) + time.perf_counter() - t0
+    return out

@@ -1,0 +1,131 @@
+"""Pose stage: Kabsch, voting, NMS, ICP on exact synthetic data."""
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from argen.objects import builtin_objects
+from detector.pose import (ObjectInfo, PoseConfig, detect, icp_refine, kabsch, nms, refine,
+                           robust_control_points, vote_clusters, Detection)
+
+BOX = np.array([[x, y, z] for x in (-0.04, 0.04) for y in (-0.03, 0.03) for z in (-0.02, 0.02)] + [[0, 0, 0]])
+DIAM = float(np.linalg.norm([0.08, 0.06, 0.04]))
+
+
+def random_pose(rng):
+    return Rotation.random(random_state=rng).as_matrix(), rng.uniform([-0.2, -0.2, 0.5], [0.2, 0.2, 1.0])
+
+
+def rot_err_deg(Ra, Rb):
+    return np.degrees(np.arccos(np.clip((np.trace(Ra.T @ Rb) - 1) / 2, -1, 1)))
+
+
+def test_kabsch_exact_random_poses():
+    rng = np.random.default_rng(0)
+    for _ in range(50):
+        R, t = random_pose(rng)
+        src = rng.normal(size=(9, 3)) * 0.05
+        Re, te = kabsch(src, src @ R.T + t, rng.uniform(0.1, 1, 9))
+        assert np.abs(Re - R).max() < 1e-6 and np.abs(te - t).max() < 1e-6
+        assert np.linalg.det(Re) == pytest.approx(1.0)
+
+
+def test_kabsch_never_reflects():
+    src = BOX.copy()
+    mirrored = src * [1, 1, -1]  # a reflection has no rotation solution
+    R, _ = kabsch(src, mirrored)
+    assert np.linalg.det(R) == pytest.approx(1.0) and np.allclose(R @ R.T, np.eye(3), atol=1e-9)
+
+
+def test_robust_aggregate_ignores_ten_percent_outliers():
+    rng = np.random.default_rng(1)
+    R, t = random_pose(rng)
+    true = BOX @ R.T + t
+    votes = true + rng.normal(scale=0.002, size=(200, 9, 3))
+    bad = rng.choice(200, 20, replace=False)
+    votes[bad] += rng.uniform(-0.3, 0.3, size=(20, 1, 3))  # whole-box outliers, up to 30 cm away
+    cps, inl = robust_control_points(votes, np.ones(200), DIAM)
+    assert not inl[bad].any() and inl.sum() >= 170
+    Re, te = kabsch(BOX, cps)
+    assert rot_err_deg(Re, R) < 0.5 and np.linalg.norm(te - t) < 0.001
+    # the plain mean is visibly worse: the test can fail
+    Rm, tm = kabsch(BOX, votes.mean(0))
+    assert np.linalg.norm(tm - t) > 5 * np.linalg.norm(te - t)
+
+
+def test_vote_clusters_separates_two_instances_20cm_apart():
+    rng = np.random.default_rng(2)
+    a = np.array([0.0, 0.0, 0.8]) + rng.normal(scale=0.005, size=(100, 3))
+    b = np.array([0.2, 0.0, 0.8]) + rng.normal(scale=0.005, size=(80, 3))
+    labels, counts = vote_clusters(np.concatenate([a, b]), 0.02)
+    assert sorted(counts) == [80, 100]
+    assert len(set(labels[:100])) == 1 and len(set(labels[100:])) == 1 and labels[0] != labels[100]
+
+
+def test_detect_two_instances_of_one_object_and_background():
+    rng = np.random.default_rng(3)
+    objs = ObjectInfo({7: BOX}, {7: DIAM}, {7: BOX})
+    poses = [random_pose(rng) for _ in range(2)]
+    poses[1] = (poses[1][0], poses[0][1] + [0.2, 0, 0])
+    xyz, ids, conf, cps = [], [], [], []
+    for (R, t), n in zip(poses, (120, 90)):
+        p = t + rng.normal(scale=0.02, size=(n, 3))
+        xyz.append(p), ids.append(np.full(n, 7)), conf.append(rng.uniform(0.85, 1, n))
+        cps.append(np.broadcast_to(BOX @ R.T + t, (n, 9, 3)) + rng.normal(scale=0.001, size=(n, 9, 3)))
+    # background points and low-confidence foreground votes far away must not make detections
+    xyz.append(rng.uniform(-1, 1, (200, 3))), ids.append(np.zeros(200, int)), conf.append(np.ones(200))
+    cps.append(rng.uniform(-1, 1, (200, 9, 3)))
+    xyz.append(rng.uniform(-1, 1, (50, 3))), ids.append(np.full(50, 7)), conf.append(np.full(50, 0.5))
+    cps.append(rng.uniform(-1, 1, (50, 9, 3)))
+    dets = detect(np.concatenate(xyz), np.concatenate(ids), np.concatenate(conf), np.concatenate(cps), objs,
+                  PoseConfig())
+    assert len(dets) == 2
+    assert sorted(d.support for d in dets) == [90, 120]
+    for d in dets:
+        R, t = min(poses, key=lambda p: np.linalg.norm(p[1] - d.t))
+        assert rot_err_deg(d.R, R) < 0.3 and np.linalg.norm(d.t - t) < 0.001
+
+
+def test_nms_keeps_the_most_confident_of_close_detections():
+    def det(score, x, oid=1):
+        return Detection(oid, score, np.eye(3), np.array([x, 0, 0.8]), 10, np.zeros((9, 3)), np.arange(3))
+    kept = nms([det(0.5, 0.0), det(0.9, 0.01), det(0.7, 0.3), det(0.6, 0.0, oid=2)], {1: 0.1, 2: 0.1}, 0.5)
+    assert [(d.obj_id, d.score) for d in kept] == [(1, 0.9), (1, 0.7), (2, 0.6)]
+
+
+def visible_surface(obj, R, t, n, rng):
+    """Surface points of ``obj`` under (R, t) facing a camera at the origin, camera frame, metres."""
+    pts, faces = obj.mesh.sample(n, return_index=True, seed=int(rng.integers(1 << 31)))
+    normals = obj.mesh.face_normals[faces] @ R.T
+    cam = pts @ R.T + t
+    return cam[np.einsum("ij,ij->i", normals, cam) < 0]
+
+
+def test_icp_improves_a_perturbed_pose():
+    rng = np.random.default_rng(4)
+    obj = builtin_objects(["drill"])[0]
+    model = np.asarray(obj.mesh.sample(2000, seed=1))
+    R, t = Rotation.from_euler("xyz", [30, -20, 60], degrees=True).as_matrix(), np.array([0.05, -0.02, 0.7])
+    scene = visible_surface(obj, R, t, 4000, rng)
+    dR = Rotation.from_rotvec(np.radians(5) * np.array([1.0, 1.0, 0.0]) / np.sqrt(2)).as_matrix()
+    R0, t0 = dR @ R, t + np.array([0.01, 0.0, 0.0])
+    Ri, ti = icp_refine(scene, model, R0, t0, max_distance=0.1 * obj.diameter)
+    before = np.linalg.norm((model @ R0.T + t0) - (model @ R.T + t), axis=1).mean()
+    after = np.linalg.norm((model @ Ri.T + ti) - (model @ R.T + t), axis=1).mean()
+    assert after < 0.25 * before and after < 0.003
+    assert rot_err_deg(Ri, R) < 1.5
+
+
+def test_refine_uses_member_points():
+    rng = np.random.default_rng(5)
+    obj = builtin_objects(["drill"])[0]
+    model = np.asarray(obj.mesh.sample(1500, seed=2))
+    R, t = Rotation.random(random_state=rng).as_matrix(), np.array([0.0, 0.0, 0.8])
+    scene = visible_surface(obj, R, t, 3000, rng)
+    objs = ObjectInfo({5: obj.control_points}, {5: obj.diameter}, {5: model})
+    R0 = Rotation.from_rotvec([0.0, 0.06, 0.0]).as_matrix() @ R
+    d = Detection(5, 1.0, R0, t + [0.0, 0.008, 0.0], len(scene), np.zeros((9, 3)), np.arange(len(scene)))
+    timings = {}
+    (r,) = refine([d], scene, objs, PoseConfig(icp=True), timings)
+    assert r.refined and timings["icp"] > 0
+    assert np.linalg.norm(r.t - t) < 0.3 * np.linalg.norm(d.t - t)
