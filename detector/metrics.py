@@ -77,8 +77,9 @@ class FrameMatch:
     """Evaluation of one frame's detections against its ground truth (G instances, D detections).
 
     gt_error: (G,) metres, the error of the detection matched to each instance (greedy by score, pairs under
-    ``k_add_limit`` x diameter; inf when none) - used for ADD accuracy and the curve; tp: detections matched under 15 % of the diameter (F1 protocol);
-    num_det: D; num_gt: G.
+    ``k_add_limit`` x diameter; inf when none) - used for ADD accuracy and the curve; tp: detections matched
+    to a valid instance under ``k_f1`` x diameter (F1 protocol); num_det: detections counted (those matched
+    to an ignored instance are left out); num_gt: valid instances.
     """
 
     gt_error: np.ndarray
@@ -87,21 +88,25 @@ class FrameMatch:
     num_gt: int
 
 
-def match_frame(scores: np.ndarray, error: np.ndarray, diameters: np.ndarray, k_f1: float = 0.15,
-                k_add_limit: float = 0.5) -> FrameMatch:
-    """Both protocols for one frame. scores (D,), error (D,G) metres (inf for other objects), diameters (G,) metres.
+def match_frame(scores: np.ndarray, error: np.ndarray, diameters: np.ndarray, valid: np.ndarray | None = None,
+                k_f1: float = 0.15, k_add_limit: float = 0.5) -> FrameMatch:
+    """Both protocols for one frame. scores (D,), error (D,G) metres (inf for other objects), diameters (G,) metres;
+    valid: (G,) bool instances that count (e.g. visible enough); the others are ignored, as are detections of them.
 
     With one instance per object (LineMOD) the ADD error is that of the best-scoring detection within
     ``k_add_limit`` of the diameter (the curve's range), so a far duplicate never takes another instance.
     """
     error = np.asarray(error, np.float64).reshape(len(scores), len(diameters))
     diameters = np.asarray(diameters, np.float64)
+    valid = np.ones(len(diameters), bool) if valid is None else np.asarray(valid, bool)
     m = greedy_match(scores, error, k_add_limit * diameters)
     gt_error = np.full(len(diameters), np.inf)
     hit = m >= 0
     gt_error[m[hit]] = error[np.flatnonzero(hit), m[hit]]
-    tp = int((greedy_match(scores, error, k_f1 * diameters) >= 0).sum())
-    return FrameMatch(gt_error, tp, len(scores), len(diameters))
+    f = greedy_match(scores, error, k_f1 * diameters)
+    ignored = (f >= 0) & ~valid[np.maximum(f, 0)]
+    tp = int(((f >= 0) & ~ignored).sum())
+    return FrameMatch(gt_error, tp, int(len(scores) - ignored.sum()), int(valid.sum()))
 
 
 def prf(tp: int, num_det: int, num_gt: int) -> dict[str, float]:

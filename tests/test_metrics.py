@@ -68,3 +68,9 @@ def test_match_frame_f1_counts():
     assert r["precision"] == 0.5 and r["recall"] == pytest.approx(2 / 3)
     assert r["f1"] == pytest.approx(2 * 0.5 * (2 / 3) / (0.5 + 2 / 3))
     assert prf(0, 0, 3) == {"precision": 0.0, "recall": 0.0, "f1": 0.0}
+
+
+def test_match_frame_ignores_invalid_instances_and_their_detections():
+    err = np.array([[0.001, np.inf], [np.inf, 0.002], [np.inf, 0.5]])
+    m = match_frame(np.array([0.9, 0.8, 0.7]), err, np.full(2, 0.1), valid=np.array([True, False]))
+    assert (m.tp, m.num_det, m.num_gt) == (1, 2, 1)  # the hit on the ignored instance is neither TP nor FP

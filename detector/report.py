@@ -1,0 +1,144 @@
+"""Evaluation report files: report.md (tables laid out like the paper's Tables II and III), report.json,
+curve.png (accuracy against threshold) and the BOP results CSV.
+
+The BOP CSV is a BOP boundary: there, and only there, translations are millimetres (BOP convention).
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+
+from detector.metrics import THRESHOLDS
+
+BOP_FIELDS = ("scene_id", "im_id", "obj_id", "score", "R", "t", "time")
+STAGES = ("sampling", "network", "voting", "kabsch", "icp")
+
+
+def bop_row(scene_id: int, im_id: int, obj_id: int, score: float, R: np.ndarray, t: np.ndarray, time_s: float) -> dict:
+    """One BOP results row: R (3,3) row-major as 9 space-separated values, t (3,) metres -> millimetres, time seconds."""
+    return {"scene_id": int(scene_id), "im_id": int(im_id), "obj_id": int(obj_id), "score": f"{float(score):.6f}",
+            "R": " ".join(f"{v:.8f}" for v in np.asarray(R, np.float64).reshape(9)),
+            "t": " ".join(f"{v:.4f}" for v in np.asarray(t, np.float64).reshape(3) * 1000.0),  # BOP: mm
+            "time": f"{float(time_s):.6f}"}
+
+
+def write_bop_csv(path: Path, rows: list[dict]) -> Path:
+    """Write BOP results rows (see :func:`bop_row`) with the BOP header."""
+    path = Path(path)
+    with path.open("w", newline="") as f:
+        w = csv.DictWriter(f, fieldnames=BOP_FIELDS, lineterminator="\n")
+        w.writeheader()
+        w.writerows(rows)
+    return path
+
+
+def read_bop_csv(path: Path) -> list[dict]:
+    """Read a BOP results CSV back: R (3,3) float64, t (3,) metres, ids int, score and time float."""
+    out = []
+    with Path(path).open() as f:
+        for r in csv.DictReader(f):
+            out.append({"scene_id": int(r["scene_id"]), "im_id": int(r["im_id"]), "obj_id": int(r["obj_id"]),
+                        "score": float(r["score"]), "R": np.array(r["R"].split(), float).reshape(3, 3),
+                        "t": np.array(r["t"].split(), float) / 1000.0, "time": float(r["time"])})
+    return out
+
+
+def _pct(v) -> str:
+    return "–" if v is None or (isinstance(v, float) and math.isnan(v)) else f"{100 * v:.1f}"
+
+
+def markdown(summary: dict) -> str:
+    """The report as Markdown: Table II (ADD at 10 % without / with ICP), Table III (10/15/30 %), F1, timings."""
+    objs = summary["objects"]
+    icp = summary["icp"]
+    lines = [f"# Evaluation of `{summary['label_file']}`", "",
+             f"{summary['num_frames']} frames, tau {summary['config']['tau']}, voting cell "
+             f"{summary['config']['cell'] * 100:.1f} cm. Metric: ADD (ADD-S for symmetric objects, marked *); "
+             "a pose is correct under the given share of the object diameter.", "",
+             "## ADD accuracy at 10 % of the diameter (Table II layout)", "",
+             "| object | instances | w/o refinement | with ICP |", "|---|---:|---:|---:|"]
+    for o in objs:
+        lines.append(f"| {o['name']}{'*' if o['symmetric'] else ''} | {o['num_gt']} | {_pct(o['add']['noicp']['0.10'])}"
+                     f" | {_pct(o['add']['icp']['0.10']) if icp else '–'} |")
+    m = summary["mean"]
+    lines += [f"| **average** | {sum(o['num_gt'] for o in objs)} | **{_pct(m['noicp']['0.10'])}** | "
+              f"**{_pct(m['icp']['0.10']) if icp else '–'}** |", "",
+              "## ADD accuracy at several thresholds, without refinement (Table III layout)", "",
+              "| object | " + " | ".join(f"{int(k * 100)} %" for k in THRESHOLDS) + " |",
+              "|---|" + "---:|" * len(THRESHOLDS)]
+    for o in objs:
+        lines.append(f"| {o['name']} | " + " | ".join(_pct(o["add"]["noicp"][f"{k:.2f}"]) for k in THRESHOLDS) + " |")
+    lines += ["| **average** | " + " | ".join(f"**{_pct(m['noicp'][f'{k:.2f}'])}**" for k in THRESHOLDS) + " |", "",
+              "## Detection at 15 % of the diameter (LC-HF protocol: greedy by score, each instance once)", "",
+              "| object | detections | instances | precision | recall | F1 |", "|---|---:|---:|---:|---:|---:|"]
+    key = "icp" if icp else "noicp"
+    for o in objs:
+        f = o["f1"][key]
+        lines.append(f"| {o['name']} | {f['num_det']} | {f['num_gt']} | {_pct(f['precision'])} | {_pct(f['recall'])}"
+                     f" | {_pct(f['f1'])} |")
+    f = summary["f1"][key]
+    lines += [f"| **all** | {f['num_det']} | {f['num_gt']} | {_pct(f['precision'])} | {_pct(f['recall'])} | "
+              f"**{_pct(f['f1'])}** |", "", f"(poses {'with' if icp else 'without'} ICP)", "",
+              "## Time per frame", "", "| stage | ms |", "|---|---:|"]
+    for s in STAGES:
+        if s in summary["timing_ms"]:
+            lines.append(f"| {s} | {summary['timing_ms'][s]:.1f} |")
+    lines += [f"| **total** | **{summary['timing_ms']['total']:.1f}** |", "",
+              f"{summary['fps']:.2f} frames per second on {summary.get('device', 'cpu')}.", "",
+              "Files: `report.json` (all numbers), `curve.png` (accuracy against threshold), "
+              f"`{summary['bop_csv']}` (BOP results; R row-major, t in millimetres).", ""]
+    return "\n".join(lines)
+
+
+def plot_curve(curves: dict[str, tuple[np.ndarray, np.ndarray]], path: Path) -> Path:
+    """Accuracy (0..1) against threshold (fraction of the diameter) per named curve, as a PNG."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(6, 4), dpi=100)
+    for name, (ks, acc) in curves.items():
+        ax.plot(100 * np.asarray(ks), 100 * np.asarray(acc), label=name)
+    for k in THRESHOLDS:
+        ax.axvline(100 * k, color="0.8", lw=0.8, zorder=0)
+    ax.set(xlabel="threshold (% of diameter)", ylabel="ADD accuracy (%)", ylim=(0, 101), xlim=(0, 50))
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path)
+    plt.close(fig)
+    return Path(path)
+
+
+def json_safe(value):
+    """``value`` with NaN/inf floats (and numpy scalars/arrays) made strict-JSON friendly (None, plain lists)."""
+    if isinstance(value, dict):
+        return {str(k): json_safe(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [json_safe(v) for v in value]
+    if isinstance(value, np.ndarray):
+        return json_safe(value.tolist())
+    if isinstance(value, np.generic):
+        value = value.item()
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    return value
+
+
+def write_report(out_dir: Path, summary: dict, curves: dict, bop_rows: list[dict]) -> dict[str, Path]:
+    """Write report.md, report.json, curve.png and the BOP CSV (``summary['bop_csv']``) into ``out_dir``."""
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    paths = {"md": out_dir / "report.md", "json": out_dir / "report.json", "curve": out_dir / "curve.png",
+             "bop": out_dir / summary["bop_csv"]}
+    paths["md"].write_text(markdown(summary))
+    paths["json"].write_text(json.dumps(json_safe(summary), indent=2, allow_nan=False) + "\n")
+    plot_curve(curves, paths["curve"])
+    write_bop_csv(paths["bop"], bop_rows)
+    return paths
