@@ -89,23 +89,32 @@ class FrameMaker:
         self.K = intrinsics(cfg.camera)
         self.renderer = get_renderer(cfg.camera.width, cfg.camera.height)
 
+    def background(self, index: int, timing: dict | None = None) -> tuple:
+        """The scene of frame ``index`` and its background seen from the true camera.
+
+        Returns (scene, T_true (4, 4) world->camera, view dict, RenderOutput of the background).
+        """
+        cfg, K, cam = self.cfg, self.K, self.cfg.camera
+        rng_scene, rng_cam, _, _ = frame_rngs(cfg.seed, index)
+        t0 = time.perf_counter()
+        scene = build_scene(cfg, self.objects, self.board, rng_scene)
+        T_true, view = sample_view(cam, rng_cam)
+        t1 = time.perf_counter()
+        bg = self.renderer.render(scene.background, K, T_true, lights=scene.lights, ambient=scene.ambient,
+                                  znear=cam.z_near, zfar=cam.z_far)
+        if timing is not None:
+            timing["scene"], timing["render"] = t1 - t0, time.perf_counter() - t1
+        return scene, T_true, view, bg
+
     def simulate(self, index: int) -> tuple[dict, dict]:
         """Simulate frame ``index``: returns (arrays, metadata). Arrays are empty for a rejected frame."""
         cfg, K = self.cfg, self.K
-        rng_scene, rng_cam, rng_noise, _ = frame_rngs(cfg.seed, index)
+        _, _, rng_noise, _ = frame_rngs(cfg.seed, index)
         timing = {}
-        t0 = time.perf_counter()
-        scene = build_scene(cfg, self.objects, self.board, rng_scene)
-        T_true, view = sample_view(cfg.camera, rng_cam)
-        t1 = time.perf_counter()
-        timing["scene"] = t1 - t0
-        cam = cfg.camera
-        bg = self.renderer.render(scene.background, K, T_true, lights=scene.lights, ambient=scene.ambient,
-                                  znear=cam.z_near, zfar=cam.z_far)
+        scene, T_true, view, bg = self.background(index, timing)
         t2 = time.perf_counter()
         est = estimate_board_pose(bg.rgb, self.board, K, cfg.ar)
-        t3 = time.perf_counter()
-        timing["render"], timing["ar"] = t2 - t1, t3 - t2
+        timing["ar"] = time.perf_counter() - t2
         log = {"index": index, "view": view, "markers": est.n_markers, "reproj_px": _f(est.reproj_px),
                "placed": scene.info["placed"], "unplaced": scene.info["unplaced"]}
         if est.T_cam_board is not None:
@@ -118,19 +127,30 @@ class FrameMaker:
         if not accepted:
             return {}, {"log": log, "timing": timing}
         T_est = est.T_cam_board  # board frame = world frame
-        items = scene.object_items()
+        arrays = self.insert(scene, T_est, bg.rgb, bg.depth, rng_noise, timing)
+        return arrays, {"log": log, "timing": timing, "T_est": T_est}
+
+    def insert(self, scene, T_est: np.ndarray, rgb: np.ndarray, depth: np.ndarray, rng_noise: np.random.Generator,
+               timing: dict, margin: float = 0.0, noise_virtual_only: bool = False) -> dict:
+        """Render the scene's placed objects from ``T_est`` and z-composite them into (rgb, depth).
+
+        rgb: (H, W, 3) uint8; depth: (H, W) float32 metres, 0 = none. A virtual pixel shows unless the
+        background is more than ``margin`` metres in front of it. Sensor noise (if enabled) goes on the
+        whole composite, or only on the virtual pixels (``noise_virtual_only``: the background is a real,
+        already noisy, measurement). Returns the arrays ``write`` takes: rgb, depth, gts, masks.
+        """
+        cfg, K, cam = self.cfg, self.K, self.cfg.camera
         t4 = time.perf_counter()
+        items = scene.object_items()
         ob = self.renderer.render(items, K, T_est, lights=scene.lights, ambient=scene.ambient,
                                   znear=cam.z_near, zfar=cam.z_far, seg=True)
         full = self.renderer.full_masks(items, K, T_est, znear=cam.z_near, zfar=cam.z_far)
-        front = (ob.depth > 0) & ((bg.depth == 0) | (ob.depth < bg.depth))
-        rgb = np.where(front[..., None], ob.rgb, bg.rgb)
-        depth = np.where(front, ob.depth, bg.depth).astype(np.float32)
-        seg = np.where(front, ob.seg, 0)
+        rgb, depth, seg, front = composite(rgb, depth, ob, margin)
         t5 = time.perf_counter()
-        timing["render"] += t5 - t4
+        timing["render"] = timing.get("render", 0.0) + t5 - t4
         if cfg.noise.enabled:
-            depth = apply_noise(depth, K, cfg.noise, rng_noise)
+            noisy = apply_noise(depth, K, cfg.noise, rng_noise)
+            depth = np.where(front, noisy, depth).astype(np.float32) if noise_virtual_only else noisy
         timing["noise"] = time.perf_counter() - t5
         gts, masks = [], []
         for i, p in enumerate(scene.placements):
@@ -138,14 +158,19 @@ class FrameMaker:
             gts.append((p.obj.obj_id, T_cam_obj[:3, :3], T_cam_obj[:3, 3]))
             m_full = full.get(i + 1, np.zeros_like(front))
             masks.append((m_full, seg == i + 1))
-        arrays = {"rgb": rgb, "depth": depth, "gts": gts, "masks": masks}
-        return arrays, {"log": log, "timing": timing, "T_est": T_est}
+        return {"rgb": rgb, "depth": depth, "gts": gts, "masks": masks}
 
     def make(self, index: int) -> FrameRecord:
         """Simulate frame ``index`` and write its image files; the JSON entries are returned."""
         cfg = self.cfg
         scene_id, im_id = divmod(index, cfg.output.frames_per_scene)
         arrays, meta = self.simulate(index)
+        return self.write(index, arrays, meta)
+
+    def write(self, index: int, arrays: dict, meta: dict) -> FrameRecord:
+        """Write one frame's image files (nothing for a rejected frame); the JSON entries are returned."""
+        cfg = self.cfg
+        scene_id, im_id = divmod(index, cfg.output.frames_per_scene)
         log, timing = meta["log"], meta["timing"]
         log.update({"scene_id": scene_id, "im_id": im_id})
         if not log["accepted"]:
@@ -166,6 +191,20 @@ class FrameMaker:
         return FrameRecord(index, scene_id, im_id, True, log, camera, gt_entries, info_entries, timing)
 
 
+def composite(rgb: np.ndarray, depth: np.ndarray, ob, margin: float = 0.0):
+    """Z-composite a rendered layer ``ob`` (RenderOutput with seg) into a background image.
+
+    rgb: (H, W, 3) uint8; depth: (H, W) float32 metres, 0 = none. A layer pixel shows where it was hit
+    and the background is missing or not more than ``margin`` metres in front of it. Returns
+    (rgb, depth float32, seg (H, W) int32 with 0 where the background shows, front (H, W) bool).
+    """
+    front = (ob.depth > 0) & ((depth == 0) | (ob.depth < depth + margin))
+    rgb = np.where(front[..., None], ob.rgb, rgb)
+    depth = np.where(front, ob.depth, depth).astype(np.float32)
+    seg = np.where(front, ob.seg, 0)
+    return rgb, depth, seg, front
+
+
 def _f(v):
     return None if v is None or not np.isfinite(v) else float(v)
 
@@ -173,7 +212,7 @@ def _f(v):
 # --------------------------------------------------------------------------------- dataset files
 
 
-def dataset_signature(req: CaptureRequest) -> dict:
+def dataset_signature(req: CaptureRequest, extra: dict | None = None) -> dict:
     """What must match for a run to resume into an existing output folder (and for shards to merge)."""
     sig = {
         "config": to_dict(req.cfg),
@@ -182,7 +221,7 @@ def dataset_signature(req: CaptureRequest) -> dict:
     }
     if req.shard[1] > 1:
         sig["shard"] = list(req.shard)
-    return sig
+    return {**sig, **(extra or {})}
 
 
 def shard_indices(frames: int, shard: tuple[int, int]) -> list[int]:
@@ -193,11 +232,14 @@ def shard_indices(frames: int, shard: tuple[int, int]) -> list[int]:
     return list(range(i, frames, n))
 
 
-def prepare_output(req: CaptureRequest) -> dict[int, dict]:
-    """Create or check the output folder; returns the capture log entries already done (by index)."""
+def prepare_output(req: CaptureRequest, kind: str = "capture-sim", extra: dict | None = None) -> dict[int, dict]:
+    """Create or check the output folder; returns the capture log entries already done (by index).
+
+    kind: what made the dataset (argen.json "kind"); extra: more signature entries that must match to resume.
+    """
     out = req.out
     meta_p = out / "argen.json"
-    sig = dataset_signature(req)
+    sig = dataset_signature(req, extra)
     if out.exists() and not out.is_dir():
         raise ArgenError(f"output path {out} exists and is not a folder")
     if meta_p.is_file():
@@ -219,7 +261,7 @@ def prepare_output(req: CaptureRequest) -> dict[int, dict]:
     write_json(out / "camera.json", {"cx": cam.cx, "cy": cam.cy, "fx": cam.fx, "fy": cam.fy,
                                      "depth_scale": req.cfg.output.depth_scale,
                                      "width": cam.width, "height": cam.height})
-    meta = {"argen_version": __version__, "kind": "capture-sim", "template": req.cfg.name, "seed": req.cfg.seed,
+    meta = {"argen_version": __version__, "kind": kind, "template": req.cfg.name, "seed": req.cfg.seed,
             "frames": req.frames, "split": req.cfg.output.split, "units": "BOP (mm)", **sig,
             "object_names": {str(o.obj_id): o.name for o in req.objects}}
     write_json(meta_p, meta)
@@ -278,11 +320,11 @@ class SceneJsons:
 _worker: FrameMaker | None = None
 
 
-def _init_worker(cfg, objects, out, threads):
+def _init_worker(maker, cfg, objects, out, threads):
     global _worker
     # llvmpipe (OSMesa) renders with all cores by default; share them between the workers
     os.environ.setdefault("LP_NUM_THREADS", str(threads))
-    _worker = FrameMaker(cfg, objects, out)
+    _worker = maker(cfg, objects, out)
 
 
 def _work(index: int) -> FrameRecord:
@@ -312,14 +354,19 @@ class CaptureSummary:
         return s
 
 
-def run_capture(req: CaptureRequest) -> CaptureSummary:
-    """Capture ``req.frames`` frames into ``req.out`` (resuming), returning a summary."""
+def run_capture(req: CaptureRequest, maker=None, kind: str = "capture-sim", extra: dict | None = None) -> CaptureSummary:
+    """Capture ``req.frames`` frames into ``req.out`` (resuming), returning a summary.
+
+    maker: picklable callable (cfg, objects, out) -> an object with ``make(index) -> FrameRecord``
+    (default FrameMaker, the simulated capture); kind, extra: see ``prepare_output``.
+    """
+    maker = maker or FrameMaker
     if req.frames < 1:
         raise ArgenError("--frames must be at least 1")
     if req.workers < 1:
         raise ArgenError("--workers must be at least 1")
     mine = shard_indices(req.frames, req.shard)
-    done = prepare_output(req)
+    done = prepare_output(req, kind, extra)
     todo = [i for i in mine if i not in done]
     jsons = SceneJsons(req.out, req.cfg.output.split)
     log_entries = dict(done)
@@ -335,10 +382,10 @@ def run_capture(req: CaptureRequest) -> CaptureSummary:
 
     from tqdm import tqdm
 
-    bar = tqdm(total=len(todo), desc="capture-sim", unit="frame", disable=not req.progress, file=sys.stderr)
+    bar = tqdm(total=len(todo), desc=kind, unit="frame", disable=not req.progress, file=sys.stderr)
     last_commit = time.perf_counter()
     try:
-        for rec in _records(req, todo):
+        for rec in _records(req, todo, maker):
             log_entries[rec.index] = rec.log
             for k, v in rec.timing.items():
                 stage[k] = stage.get(k, 0.0) + v
@@ -362,12 +409,12 @@ def run_capture(req: CaptureRequest) -> CaptureSummary:
                           reasons, unplaced)
 
 
-def _records(req: CaptureRequest, todo: list[int]):
+def _records(req: CaptureRequest, todo: list[int], maker):
     if req.workers == 1 or len(todo) <= 1:
-        maker = FrameMaker(req.cfg, req.objects, req.out)
+        m = maker(req.cfg, req.objects, req.out)
         for i in todo:
-            yield maker.make(i)
+            yield m.make(i)
         return
     ctx = mp.get_context("spawn")
-    with ctx.Pool(req.workers, initializer=_init_worker, initargs=(req.cfg, req.objects, req.out, max(1, (os.cpu_count() or 1) // req.workers))) as pool:
+    with ctx.Pool(req.workers, initializer=_init_worker, initargs=(maker, req.cfg, req.objects, req.out, max(1, (os.cpu_count() or 1) // req.workers))) as pool:
         yield from pool.imap(_work, todo, chunksize=1)
