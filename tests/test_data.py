@@ -293,6 +293,17 @@ def test_collate_stacks_items(h5_path):
     assert batch["frame"].tolist() == [1, 3]
 
 
+def test_loader_workers_open_the_file_themselves_and_give_the_same_items(h5_path):
+    ds = PointDataset(h5_path, small_model_config(), NUM_POINTS, augment=True, seed=0)
+    ds[0]  # an open handle in this process must not travel to the worker
+    keys = [[(1, 3), (1, 0)]]
+    loader = torch.utils.data.DataLoader(ds, batch_sampler=keys, collate_fn=collate, num_workers=1)
+    (batch,) = list(loader)
+    expect = collate([ds[k] for k in keys[0]])
+    assert all(torch.equal(batch[k], expect[k]) for k in expect)
+    ds.close()
+
+
 def test_inference_batch_points_index_the_input_rows(frames):
     feats = frames[0][0]
     batch = inference_batch(feats, small_model_config(), NUM_POINTS, seed=4)
