@@ -17,8 +17,8 @@ from detector.report import read_bop_csv
 
 
 @pytest.fixture(scope="session")
-def label_file(tmp_path_factory):
-    """A 3-frame noise-free capture-sim dataset of the built-in objects, labelled (tiny)."""
+def dataset(tmp_path_factory):
+    """A 3-frame noise-free capture-sim dataset of the built-in objects and its label file (tiny)."""
     d = tmp_path_factory.mktemp("eval")
     r = CliRunner().invoke(argen_app, ["capture-sim", "--frames", "3", "--noise", "none", "--out", str(d / "ds"),
                                        "--seed", "5", "--quiet"])
@@ -26,7 +26,12 @@ def label_file(tmp_path_factory):
     out = d / "test.h5"
     run_label(LabelRequest(dataset=d / "ds", split="train_pbr", out=out, progress=False,
                            cfg=LabelConfig(max_points=20000)))
-    return out
+    return d / "ds", out
+
+
+@pytest.fixture(scope="session")
+def label_file(dataset):
+    return dataset[1]
 
 
 def test_oracle_gives_full_add_accuracy(label_file, tmp_path):
@@ -79,3 +84,103 @@ def test_oracle_with_icp_and_subsampling(label_file, tmp_path):
     assert {"voting", "kabsch", "icp", "total"} <= set(s["timing_ms"])
     assert "with ICP" in (tmp_path / "report.md").read_text()
     assert s["fps"] > 0
+
+
+# ------------------------------------------------------------------------------------------------ predict
+
+
+def gt_predictor(ds, scene_id, im_id):
+    """Labels each input point with the ground-truth instance whose surface it lies on (within 3 mm)."""
+    from scipy.spatial import cKDTree
+
+    from argen import bop
+    from argen.objects import load_models
+
+    models = {o.obj_id: o for o in load_models(ds / "models")}
+    gts = bop.load_scene(ds, "train_pbr", scene_id).gts[im_id]
+
+    def predict(frame):
+        xyz = frame.features[:, :3].astype(np.float64)
+        best = np.full(len(xyz), np.inf)
+        cps = np.zeros((len(xyz), 9, 3))
+        obj = np.zeros(len(xyz), np.int64)
+        for g in gts:
+            o = models[g.obj_id]
+            d, _ = cKDTree(np.asarray(o.mesh.sample(20000, seed=0)) @ g.R.T + g.t).query(xyz)
+            take = (d < 0.003) & (d < best)
+            best[take], obj[take], cps[take] = d[take], g.obj_id, o.control_points @ g.R.T + g.t
+        ids = sorted(models)
+        probs = np.eye(len(ids) + 1)[np.searchsorted(ids, obj) + 1]
+        probs[obj == 0] = np.eye(len(ids) + 1)[0]
+        return Predictions(xyz, probs, ids, cps, np.ones(len(xyz)), np.arange(len(xyz)))
+
+    return predict, models, gts
+
+
+def check_poses(out, gts, tol_t=1e-3, tol_deg=1.0):
+    found = {d["obj_id"]: d for d in out["detections"]}
+    visible = [g for g in gts if g.obj_id in found]
+    assert len(visible) >= 2
+    for g in visible:
+        d = found[g.obj_id]
+        assert np.abs(np.array(d["t"]) - g.t).max() < tol_t
+        cos = (np.trace(np.array(d["R"]).T @ g.R) - 1) / 2
+        assert np.degrees(np.arccos(np.clip(cos, -1, 1))) < tol_deg
+        assert np.allclose(np.array(d["T_cam_model"])[:3, 3], d["t"])
+
+
+def test_predict_on_bop_frame_depth_png_and_ply(dataset, tmp_path):
+    import open3d as o3d
+
+    from argen import bop
+    from detector.pose import ObjectInfo
+    from detector.predict import load_input, predict
+
+    ds, _ = dataset
+    scene = bop.load_scene(ds, "train_pbr", 0)
+    im_id = scene.im_ids[0]
+    predictor, models, gts = gt_predictor(ds, 0, im_id)
+    objects = ObjectInfo({i: o.control_points for i, o in models.items()}, {i: o.diameter for i, o in models.items()},
+                         {i: np.asarray(o.mesh.sample(500, seed=1)) for i, o in models.items()})
+    inp = load_input(str(ds / "train_pbr" / "000000" / str(im_id)))
+    assert inp.image is not None and inp.features.shape[1] == 9
+    out = predict(predictor, inp, objects, tmp_path / "bop", names={i: o.name for i, o in models.items()})
+    check_poses(out, gts)
+    assert json.loads((tmp_path / "bop" / "poses.json").read_text()) == json.loads(json.dumps(out))
+    png = (tmp_path / "bop" / "poses.png").read_bytes()
+    assert png[:4] == b"\x89PNG"
+
+    # the same frame as a depth PNG with explicit intrinsics gives the same points
+    cam = scene.cameras[im_id]
+    K = cam.K
+    depth_png = bop.image_path(ds, "train_pbr", 0, im_id, "depth")
+    inp2 = load_input(str(depth_png), K=f"{K[0, 0]},{K[1, 1]},{K[0, 2]},{K[1, 2]}", depth_scale=cam.depth_scale,
+                      rgb=bop.image_path(ds, "train_pbr", 0, im_id, "rgb"))
+    np.testing.assert_allclose(inp2.features, inp.features, atol=1e-6)
+
+    # ... and as a PLY cloud (metres, camera frame), drawn over a splat of the cloud
+    pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(inp.features[:, :3].astype(np.float64)))
+    pc.colors = o3d.utility.Vector3dVector(inp.features[:, 3:6].astype(np.float64))
+    pc.normals = o3d.utility.Vector3dVector(inp.features[:, 6:9].astype(np.float64))
+    o3d.io.write_point_cloud(str(tmp_path / "cloud.ply"), pc)
+    inp3 = load_input(str(tmp_path / "cloud.ply"))
+    assert inp3.image is None
+    np.testing.assert_allclose(np.sort(inp3.features[:, 2]), np.sort(inp.features[:, 2]), atol=1e-6)
+    out3 = predict(predictor, inp3, objects, tmp_path / "ply")
+    check_poses(out3, gts)
+    import cv2
+    img = cv2.imread(str(tmp_path / "ply" / "poses.png"))
+    assert img.shape[:2] == (480, 640) and img.any()
+
+
+def test_predict_input_errors(tmp_path):
+    from detector.errors import DetectorError
+    from detector.predict import load_input, parse_K
+
+    assert parse_K("500,510,320,240")[1, 1] == 510
+    with pytest.raises(DetectorError, match="4 .* or 9 values"):
+        parse_K("1,2,3")
+    with pytest.raises(DetectorError, match="cannot tell"):
+        load_input(str(tmp_path / "x.txt"))
+    with pytest.raises(DetectorError, match="not found"):
+        load_input(str(tmp_path / "x.ply"))

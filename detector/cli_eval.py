@@ -1,0 +1,76 @@
+"""``detector eval`` and ``detector predict``, added to the ``detector`` typer app by :func:`register`."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Optional
+
+import typer
+
+
+def register(app: typer.Typer) -> None:
+    """Add the ``eval`` and ``predict`` commands to ``app`` (errors handled by ``detector.cli.user_errors``)."""
+    from detector.cli import user_errors
+
+    @app.command("eval")
+    @user_errors
+    def eval_cmd(
+        checkpoint: Path = typer.Argument(..., help="Checkpoint written by 'detector train'."),
+        data: Path = typer.Argument(..., help="Label file (HDF5) written by 'argen label'."),
+        out: Path = typer.Option(..., "--out", help="Report folder (report.md, report.json, curve.png, BOP CSV)."),
+        icp: bool = typer.Option(False, "--icp", help="Also refine with ICP (Table II 'with refinement')."),
+        tau: float = typer.Option(0.8, "--tau", help="Confidence threshold."),
+        cell: float = typer.Option(0.02, "--cell", help="Voting voxel size, metres."),
+        min_visib: float = typer.Option(0.1, "--min-visib", help="Ignore instances less visible than this."),
+        frames: Optional[int] = typer.Option(None, "--frames", help="Evaluate only the first N frames."),
+        device: str = typer.Option("cpu", "--device", help="torch device, e.g. cpu or cuda."),
+        seed: int = typer.Option(0, "--seed", help="Point sampling seed."),
+        quiet: bool = typer.Option(False, "--quiet", help="No progress bar."),
+    ) -> None:
+        """Evaluate a checkpoint on a label file: ADD/ADD-S accuracy, F1, timings, BOP results CSV."""
+        from argen.h5 import LabelFile
+        from detector.checkpoint import load_checkpoint
+        from detector.evaluate import evaluate, network_predictor
+        from detector.predict import pose_config
+
+        cfg = pose_config(tau, cell, icp)
+        ckpt = load_checkpoint(checkpoint, device)
+        with LabelFile(data) as lf:
+            n = lf.num_frames
+        s = evaluate(network_predictor(ckpt, seed), data, out, icp=icp, cfg=cfg, device=device,
+                     frames=list(range(min(n, frames) if frames else n)), min_visib=min_visib, progress=not quiet)
+        key = "icp" if icp else "noicp"
+        typer.echo(f"ADD@10%: {100 * s['mean'][key]['0.10']:.1f} %  F1@15%: {100 * s['f1'][key]['f1']:.1f} %  "
+                   f"{s['fps']:.2f} frames/s  -> {out / 'report.md'}")
+
+    @app.command("predict")
+    @user_errors
+    def predict_cmd(
+        checkpoint: Path = typer.Argument(..., help="Checkpoint written by 'detector train'."),
+        input: str = typer.Argument(..., help="A BOP frame SPLIT_DIR/SCENE_ID/IM_ID, a depth .png or a .ply cloud."),
+        out: Path = typer.Option(Path("predict"), "--out", help="Folder for poses.json and poses.png."),
+        K: Optional[str] = typer.Option(None, "--K", help="Intrinsics of a depth PNG: fx,fy,cx,cy or 9 values."),
+        camera: Optional[Path] = typer.Option(None, "--camera", help="BOP camera.json for a depth PNG."),
+        depth_scale: Optional[float] = typer.Option(None, "--depth-scale",
+                                                    help="Depth PNG value x scale = millimetres (BOP)."),
+        rgb: Optional[Path] = typer.Option(None, "--rgb", help="Colour image for a depth PNG."),
+        icp: bool = typer.Option(False, "--icp", help="Refine with ICP."),
+        tau: float = typer.Option(0.8, "--tau", help="Confidence threshold."),
+        cell: float = typer.Option(0.02, "--cell", help="Voting voxel size, metres."),
+        device: str = typer.Option("cpu", "--device", help="torch device."),
+        seed: int = typer.Option(0, "--seed", help="Point sampling seed."),
+    ) -> None:
+        """Predict the poses in one frame: poses.json (metres) and poses.png (3D boxes)."""
+        from detector.checkpoint import load_checkpoint
+        from detector.evaluate import network_predictor
+        from detector.predict import checkpoint_objects, load_input, pose_config, predict
+
+        cfg = pose_config(tau, cell, icp)
+        ckpt = load_checkpoint(checkpoint, device)
+        inp = load_input(input, K=K, depth_scale=depth_scale, camera=camera, rgb=rgb, seed=seed)
+        objects, names = checkpoint_objects(ckpt)
+        res = predict(network_predictor(ckpt, seed), inp, objects, out, cfg, names)
+        for d in res["detections"]:
+            typer.echo(f"{d['name']} (obj {d['obj_id']}): score {d['score']:.2f}, t = "
+                       + " ".join(f"{v:.3f}" for v in d["t"]) + " m")
+        typer.echo(f"{len(res['detections'])} detections -> {out / 'poses.json'}, {out / 'poses.png'}")
