@@ -120,11 +120,7 @@ class FrameMaker:
         if est.T_cam_board is not None:
             rot, trans = pose_error(est.T_cam_board, T_true)
             log["board_pose_error"] = {"rot_deg": float(rot), "trans_mm": float(trans * 1000)}
-        accepted, reason = est.accepted, est.reason
-        if accepted and not scene.placements:
-            accepted, reason = False, "no object could be placed"
-        log["accepted"], log["reason"] = bool(accepted), reason
-        if not accepted:
+        if not accept(log, est, scene):
             return {}, {"log": log, "timing": timing}
         T_est = est.T_cam_board  # board frame = world frame
         arrays = self.insert(scene, T_est, bg.rgb, bg.depth, rng_noise, timing)
@@ -189,6 +185,15 @@ class FrameMaker:
         timing["write"] = time.perf_counter() - t0
         camera = bop.camera_entry(self.K, ds, meta["T_est"])
         return FrameRecord(index, scene_id, im_id, True, log, camera, gt_entries, info_entries, timing)
+
+
+def accept(log: dict, est, scene) -> bool:
+    """Whether a frame is kept: an accepted board pose and at least one placed object; noted in ``log``."""
+    accepted, reason = est.accepted, est.reason
+    if accepted and not scene.placements:
+        accepted, reason = False, "no object could be placed"
+    log["accepted"], log["reason"] = bool(accepted), reason
+    return bool(accepted)
 
 
 def composite(rgb: np.ndarray, depth: np.ndarray, ob, margin: float = 0.0):

@@ -178,6 +178,8 @@ def main() -> None:
 
 from argen.cli_label import register as _register_label  # noqa: E402  (label, validate, preview)
 _register_label(app)
+from argen.cli_real import register as _register_real  # noqa: E402  (capture --recording, replace)
+_register_real(app)
 
 
 if __name__ == "__main__":

@@ -1,0 +1,54 @@
+"""The ``argen capture`` (real recordings) and ``argen replace`` commands (registered on argen.cli's app)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Optional
+
+import typer
+
+from argen.errors import ArgenError
+
+
+def register(app: typer.Typer) -> None:
+    """Add the capture and replace commands to ``app``."""
+    from argen.cli import check_placeable, load_config, user_errors  # argen.cli imports this module at its end
+
+    @app.command("capture")
+    @user_errors
+    def capture_cmd(
+        recording: Path = typer.Option(..., "--recording", help="recording folder: rgb/, depth/, camera.json "
+                                       "(fx, fy, cx, cy, depth_scale), optional timestamps.txt"),
+        out: Path = typer.Option(..., "--out", help="output BOP dataset folder"),
+        models: Optional[Path] = typer.Option(None, "--models", help="BOP models folder (PLY in mm); default: built-in objects"),
+        scene: str = typer.Option("linemod", "--scene", help="template (board, placement, noise) or a YAML file"),
+        objects: Optional[str] = typer.Option(None, "--objects", help="comma-separated object names or ids"),
+        seed: Optional[int] = typer.Option(None, "--seed", help="random seed of the placements"),
+        noise: Optional[str] = typer.Option(None, "--noise", help="'kinect' or 'none': sensor noise on the virtual "
+                                            "objects' depth (default: the template's)"),
+        depth_scale: Optional[float] = typer.Option(None, "--depth-scale", help="mm per depth-PNG unit "
+                                                    "(overrides camera.json; 1.0 for RealSense / Azure Kinect)"),
+        occlusion_margin: float = typer.Option(0.003, "--occlusion-margin", help="metres a real surface must be in "
+                                               "front of a virtual one to hide it"),
+        workers: int = typer.Option(1, "--workers", help="processes, each with its own renderer"),
+        overwrite: bool = typer.Option(False, "--overwrite", help="replace an output folder made with other options"),
+        sets: list[str] = typer.Option([], "--set", help="override any template key"),
+        quiet: bool = typer.Option(False, "--quiet", help="no progress bar"),
+    ):
+        """Composite virtual objects into a recorded RGB-D sequence of the printed board; write BOP scenes."""
+        from argen.objects import load_objects
+        from argen.capture import CaptureRequest
+        from argen.realcap import run_real_capture
+        from argen.recording import open_recording
+
+        if workers < 1:
+            raise ArgenError(f"--workers must be at least 1, got {workers}")
+        rec = open_recording(recording, depth_scale)
+        cfg = load_config(scene, seed, noise, sets, objects)
+        objs = load_objects(models, cfg.objects or None)
+        check_placeable(cfg, objs)
+        req = CaptureRequest(cfg=cfg, objects=objs, out=out, frames=len(rec), workers=workers,
+                             models_source=str(models.resolve()) if models else "builtin",
+                             overwrite=overwrite, progress=not quiet)
+        summary = run_real_capture(req, rec, occlusion_margin)
+        typer.echo(f"{out}: {summary.line()}")
