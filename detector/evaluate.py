@@ -70,7 +70,7 @@ def network_predictor(checkpoint, seed: int = 0, device: str | None = None) -> P
     """A predictor running ``checkpoint.model`` (a :class:`detector.checkpoint.Checkpoint`) on one frame.
 
     Sampling and neighbour indices as in training (``detector.data.inference_batch``); times "sampling" and
-    "network" (synchronised on GPU).
+    "network" (synchronised on GPU). On a GPU the neighbour indices are computed by the model (inside "network").
     """
     import torch
 
@@ -83,13 +83,13 @@ def network_predictor(checkpoint, seed: int = 0, device: str | None = None) -> P
     def predict(frame) -> Predictions:
         t0 = time.perf_counter()
         batch = inference_batch(frame.features, checkpoint.model_config, checkpoint.num_points, seed,
-                                normalisation=checkpoint.normalisation or None)
+                                normalisation=checkpoint.normalisation or None, precompute=dev.type == "cpu")
         feats = batch.pop("features").to(dev)
         rows = batch.pop("point_index").numpy()
         indices = {k: v.to(dev) for k, v in batch.items()}
         t1 = time.perf_counter()
         with torch.no_grad():
-            out = model(feats, indices)
+            out = model(feats, indices or None)
             if dev.type == "cuda":
                 torch.cuda.synchronize(dev)
         t2 = time.perf_counter()

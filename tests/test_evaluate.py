@@ -184,3 +184,60 @@ def test_predict_input_errors(tmp_path):
         load_input(str(tmp_path / "x.txt"))
     with pytest.raises(DetectorError, match="not found"):
         load_input(str(tmp_path / "x.ply"))
+
+
+# ------------------------------------------------------------------------------- network end to end (CLI)
+
+
+@pytest.fixture(scope="module")
+def random_checkpoint(label_file, tmp_path_factory):
+    """A randomly initialised tiny PoseNet saved through detector.checkpoint (detects nothing useful)."""
+    torch = pytest.importorskip("torch")
+    pytest.importorskip("detector.ops")
+    model = pytest.importorskip("detector.model")
+    from test_data import TINY_MODEL
+
+    from detector.checkpoint import save_checkpoint
+    from detector.data import NORMALISATION, object_table_dict
+
+    torch.set_num_threads(1)
+    torch.manual_seed(0)
+    cfg = model.ModelConfig.from_dict({**model.preset("cpu").to_dict(), **TINY_MODEL})
+    with LabelFile(label_file) as lf:
+        objects = object_table_dict(lf.objects)
+    net = model.PoseNet(cfg, num_classes=len(objects["ids"]))
+    path = tmp_path_factory.mktemp("ckpt") / "random.pt"
+    save_checkpoint(path, model=net, model_config=cfg, class_ids=objects["ids"], objects=objects, num_points=1024,
+                    step=0, normalisation=NORMALISATION)
+    return path
+
+
+def test_cli_eval_and_predict_with_a_random_network(random_checkpoint, dataset, tmp_path):
+    from detector.cli import app
+
+    ds, h5 = dataset
+    runner = CliRunner()
+    r = runner.invoke(app, ["eval", str(random_checkpoint), str(h5), "--out", str(tmp_path / "rep"), "--frames", "1",
+                            "--tau", "0", "--quiet"])
+    assert r.exit_code == 0, r.output
+    js = json.loads((tmp_path / "rep" / "report.json").read_text())
+    assert js["num_frames"] == 1 and js["timing_ms"]["network"] > 0 and js["timing_ms"]["sampling"] > 0
+    assert 0 <= js["mean"]["noicp"]["0.10"] <= 1
+    head = (tmp_path / "rep" / BOP_CSV).read_text().splitlines()[0]
+    assert head == "scene_id,im_id,obj_id,score,R,t,time"
+    for row in read_bop_csv(tmp_path / "rep" / BOP_CSV):  # any detections are proper rotations
+        assert np.allclose(row["R"] @ row["R"].T, np.eye(3), atol=1e-5) and row["time"] > 0
+    assert (tmp_path / "rep" / "curve.png").is_file() and (tmp_path / "rep" / "report.md").is_file()
+
+    from argen import bop
+
+    im_id = bop.load_scene(ds, "train_pbr", 0).im_ids[0]
+    r = runner.invoke(app, ["predict", str(random_checkpoint), str(ds / "train_pbr" / "000000" / str(im_id)),
+                            "--out", str(tmp_path / "pred")])
+    assert r.exit_code == 0, r.output
+    out = json.loads((tmp_path / "pred" / "poses.json").read_text())
+    assert isinstance(out["detections"], list) and out["timing_ms"]["network"] > 0
+    assert (tmp_path / "pred" / "poses.png").read_bytes()[:4] == b"\x89PNG"
+
+    r = runner.invoke(app, ["predict", str(random_checkpoint), str(tmp_path / "missing.ply")])
+    assert r.exit_code == 2 and "detector: error:" in r.output and len(r.output.strip().splitlines()) == 1

@@ -1,0 +1,131 @@
+"""Inference time per frame, per stage (sampling, network, voting, Kabsch, ICP), on CPU or GPU.
+
+Usage: .venv/bin/python bench/bench_infer.py [--data FILE.h5] [--checkpoint CKPT] [--preset cpu paper]
+                                             [--frames 5] [--device cpu|cuda] [--threads N]
+
+Sampling + network: a checkpoint (or a randomly initialised network of each ``--preset``, same cost) on the
+label file's frames (median over frames after one warm-up). A random network's output is noise, so the
+pose stage (voting, Kabsch, ICP) is timed on the file's ground-truth labels instead (``oracle_predictor``
+sampled to the network's point count): realistic instance counts and supports. Without ``--data`` a
+3-frame noise-free capture-sim dataset of the built-in objects is made and labelled in a temporary folder.
+The target is the paper's 6 fps (166 ms per frame), which it reached on a TITAN XP GPU.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import statistics
+import tempfile
+import time
+from pathlib import Path
+
+
+def make_data(tmp: Path) -> Path:
+    """A tiny labelled capture-sim dataset (3 frames, built-in objects, no noise)."""
+    from typer.testing import CliRunner
+
+    from argen.cli import app
+    from argen.label import LabelConfig, LabelRequest, run_label
+
+    r = CliRunner().invoke(app, ["capture-sim", "--frames", "3", "--noise", "none", "--out", str(tmp / "ds"),
+                                 "--seed", "1", "--quiet"])
+    if r.exit_code != 0:
+        raise SystemExit(r.output)
+    out = tmp / "bench.h5"
+    run_label(LabelRequest(dataset=tmp / "ds", split="train_pbr", out=out, progress=False, cfg=LabelConfig()))
+    return out
+
+
+def network_times(ckpt, frames: list, device: str) -> dict[str, float]:
+    """Median seconds of "sampling" and "network" over frames (first frame is a warm-up)."""
+    from detector.evaluate import network_predictor
+
+    pred = network_predictor(ckpt, seed=0, device=device)
+    pred(frames[0])
+    runs = [pred(f).timings for f in frames]
+    return {k: statistics.median(r[k] for r in runs) for k in ("sampling", "network")}
+
+
+def pose_times(frames: list, objects, num_points: int) -> dict[str, float]:
+    """Median seconds of voting, Kabsch and ICP per frame on ground-truth predictions, and detections per frame."""
+    from detector.evaluate import estimate, oracle_predictor
+    from detector.pose import PoseConfig
+
+    pred = oracle_predictor(num_points=num_points, seed=0)
+    cfg = PoseConfig(icp=True)
+    estimate(pred(frames[0]), objects, cfg, {})
+    runs, dets = [], []
+    for f in frames:
+        t = {}
+        d, _ = estimate(pred(f), objects, cfg, t)
+        runs.append(t)
+        dets.append(len(d))
+    out = {k: statistics.median(r.get(k, 0.0) for r in runs) for k in ("voting", "kabsch", "icp")}
+    out["detections"] = statistics.mean(dets)
+    return out
+
+
+def random_checkpoint(preset: str, objects_dict: dict, device: str):
+    """A Checkpoint of a randomly initialised network of ``preset`` (its train preset's point count)."""
+    import torch
+
+    from detector.checkpoint import Checkpoint
+    from detector.data import NORMALISATION
+    from detector.model import PoseNet
+    from detector.train import build_model_config, make_config
+
+    cfg = make_config(preset, {})
+    mcfg = build_model_config(cfg)
+    torch.manual_seed(0)
+    model = PoseNet(mcfg, num_classes=len(objects_dict["ids"])).to(device).eval()
+    return Checkpoint(model=model, model_config=mcfg, class_ids=list(objects_dict["ids"]), objects=objects_dict,
+                      num_points=cfg.num_points, step=0, extra={}, normalisation=dict(NORMALISATION))
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--data", type=Path)
+    ap.add_argument("--checkpoint", type=Path)
+    ap.add_argument("--preset", nargs="+", default=["cpu"])
+    ap.add_argument("--frames", type=int, default=5)
+    ap.add_argument("--device", default="cpu")
+    ap.add_argument("--threads", type=int, default=0, help="torch CPU threads (0: torch's default)")
+    args = ap.parse_args()
+
+    import torch
+
+    from argen.h5 import LabelFile
+    from detector.checkpoint import load_checkpoint
+    from detector.data import object_table_dict
+    from detector.pose import ObjectInfo
+
+    if args.threads:
+        torch.set_num_threads(args.threads)
+    with tempfile.TemporaryDirectory() as tmp:
+        data = args.data or make_data(Path(tmp))
+        with LabelFile(data) as lf:
+            frames = [lf.frame(i % lf.num_frames) for i in range(max(args.frames, 2))]
+            objects_dict = object_table_dict(lf.objects)
+            objects = ObjectInfo.from_table(lf.objects)
+        results = []
+        ckpts = [("checkpoint", load_checkpoint(args.checkpoint, args.device))] if args.checkpoint else \
+            [(p, random_checkpoint(p, objects_dict, args.device)) for p in args.preset]
+        for name, ck in ckpts:
+            net = network_times(ck, frames, args.device)
+            pose = pose_times(frames, objects, ck.num_points)
+            ms = {k: 1000 * v for k, v in {**net, **{k: pose[k] for k in ("voting", "kabsch", "icp")}}.items()}
+            ms["total_no_icp"] = sum(ms[k] for k in ("sampling", "network", "voting", "kabsch"))
+            ms["total"] = ms["total_no_icp"] + ms["icp"]
+            res = {"model": name, "device": args.device, "threads": torch.get_num_threads(),
+                   "num_points": ck.num_points, "frame_points": int(statistics.mean(len(f.features) for f in frames)),
+                   "detections_per_frame": pose["detections"], "ms": {k: round(v, 1) for k, v in ms.items()},
+                   "fps": round(1000 / ms["total"], 2), "fps_no_icp": round(1000 / ms["total_no_icp"], 2)}
+            results.append(res)
+            print(json.dumps(res), flush=True)
+    started = time.strftime("%Y-%m-%d %H:%M:%S")
+    print(f"# {started}: per-stage medians over {len(frames)} frames; target 166 ms (6 fps)")
+
+
+if __name__ == "__main__":
+    main()
