@@ -241,3 +241,38 @@ def test_cli_eval_and_predict_with_a_random_network(random_checkpoint, dataset, 
 
     r = runner.invoke(app, ["predict", str(random_checkpoint), str(tmp_path / "missing.ply")])
     assert r.exit_code == 2 and "detector: error:" in r.output and len(r.output.strip().splitlines()) == 1
+
+
+@pytest.fixture(scope="session")
+def lchf_file(tmp_path_factory):
+    """2 noise-free frames of the lchf template: several instances of one object per frame."""
+    d = tmp_path_factory.mktemp("lchf")
+    r = CliRunner().invoke(argen_app, ["capture-sim", "--scene", "lchf", "--frames", "2", "--noise", "none",
+                                       "--out", str(d / "ds"), "--seed", "3", "--quiet"])
+    assert r.exit_code == 0, r.output
+    run_label(LabelRequest(dataset=d / "ds", split="train_pbr", out=d / "l.h5", progress=False,
+                           cfg=LabelConfig(max_points=20000)))
+    return d / "l.h5"
+
+
+def test_oracle_multi_instance_f1_and_a_missed_instance(lchf_file, tmp_path):
+    with LabelFile(lchf_file) as lf:
+        counts = [np.bincount(f.instances.obj_id).max() for f in lf.frames()]
+    assert max(counts) >= 3  # several instances of the same object in one frame
+    s = evaluate(oracle_predictor(), lchf_file, tmp_path / "a")
+    f = s["f1"]["noicp"]
+    assert (f["precision"], f["recall"], f["f1"]) == (1.0, 1.0, 1.0) and f["num_det"] == f["num_gt"]
+    n = f["num_gt"]
+    assert n == sum(o["num_gt"] for o in s["objects"]) >= 6
+
+    base = oracle_predictor()
+
+    def drop_first_instance(frame):  # the network misses instance 0 of every frame
+        p = base(frame)
+        keep = frame.instance[p.point_index] != 0
+        return Predictions(p.xyz[keep], p.class_probs[keep], p.class_ids, p.control_points[keep], p.confidence[keep],
+                           p.point_index[keep])
+
+    s2 = evaluate(drop_first_instance, lchf_file, tmp_path / "b")
+    f = s2["f1"]["noicp"]
+    assert f["precision"] == 1.0 and f["recall"] == pytest.approx((n - 2) / n) and f["num_det"] == n - 2
