@@ -52,3 +52,32 @@ def register(app: typer.Typer) -> None:
                              overwrite=overwrite, progress=not quiet)
         summary = run_real_capture(req, rec, occlusion_margin)
         typer.echo(f"{out}: {summary.line()}")
+
+    @app.command("replace")
+    @user_errors
+    def replace_cmd(
+        dataset: Path = typer.Argument(..., help="BOP dataset with ground truth (e.g. the LineMOD test set)"),
+        out: Path = typer.Option(..., "--out", help="output BOP dataset folder"),
+        split: str = typer.Option("test", "--split", help="split folder inside the dataset"),
+        models: Optional[Path] = typer.Option(None, "--models", help="BOP models folder (default: DATASET/models)"),
+        obj_id: Optional[int] = typer.Option(None, "--obj-id", help="target object (default: each frame's first "
+                                             "GT instance)"),
+        fraction: float = typer.Option(0.1, "--fraction", help="share of the frames to use (the paper: 0.1)"),
+        step_deg: float = typer.Option(30.0, "--step-deg", help="rotation step about the plane normal, degrees"),
+        seed: int = typer.Option(0, "--seed", help="frame choice, plane fit and noise seed"),
+        noise: str = typer.Option("kinect", "--noise", help="'kinect' or 'none': sensor noise on the changed pixels"),
+        scene: str = typer.Option("linemod", "--scene", help="template whose noise model to use"),
+        overwrite: bool = typer.Option(False, "--overwrite", help="replace a non-empty output folder"),
+        quiet: bool = typer.Option(False, "--quiet", help="no progress bar"),
+    ):
+        """The paper's fine-tuning frames: the target object removed and re-inserted every STEP degrees."""
+        from argen.config import load_template
+        from argen.replace import replace_dataset
+
+        if noise not in ("none", "kinect"):
+            raise ArgenError(f"--noise must be 'none' or 'kinect', got '{noise}'")
+        noise_cfg = load_template(scene).noise if noise == "kinect" else None
+        summary = replace_dataset(dataset, out, split=split, models=models, obj_id=obj_id, fraction=fraction,
+                                  step_deg=step_deg, seed=seed, noise=noise_cfg, overwrite=overwrite,
+                                  progress=not quiet)
+        typer.echo(f"{out}: {summary.line()}")
