@@ -131,3 +131,17 @@ def test_eight_bit_depth_is_refused(tmp_path):
     bop.write_png(rec / "depth" / "000000.png", np.full((24, 32), 70, np.uint8))
     with pytest.raises(ArgenError, match="not 16-bit"):
         open_recording(rec)
+
+
+def test_noise_goes_on_the_virtual_pixels_only(runs, tmp_path):
+    root, rec, _, cfg, objs = runs
+    noisy_cfg = override(cfg, {"noise.enabled": True})
+    run_real_capture(CaptureRequest(cfg=noisy_cfg, objects=objs, out=tmp_path / "n", frames=1, progress=False), rec)
+    clean, noisy = _scene(root / "real"), _scene(tmp_path / "n")
+    assert noisy.im_ids == clean.im_ids
+    for im in clean.im_ids:
+        dc, dn = clean.read_depth(im), noisy.read_depth(im)
+        virt = np.any([clean.read_mask(im, g) for g in range(len(clean.gts[im]))], axis=0)
+        assert np.array_equal(dc[~virt], dn[~virt])  # the recording already holds its sensor's noise
+        both = virt & (dn > 0)
+        assert 0.0002 < np.median(np.abs(dc[both] - dn[both])) < 0.005

@@ -144,3 +144,22 @@ def test_fraction_and_step_checks(tmp_path):
     assert r.exit_code == 2 and "divide 360" in r.stderr
     r = CliRunner().invoke(app, ["replace", str(tmp_path / "none"), "--out", str(tmp_path / "o")])
     assert r.exit_code == 2 and "not found" in r.stderr and len(r.stderr.strip().splitlines()) == 1
+
+
+def test_without_camera_pose_the_axis_is_the_fitted_plane_normal(data, tmp_path):
+    root, _ = data
+    import shutil
+
+    src = tmp_path / "src"
+    shutil.copytree(root / "src", src)
+    p = src / SPLIT / "000000" / "scene_camera.json"
+    cams = json.loads(p.read_text())
+    truth = {k: np.array(v["cam_R_w2c"]).reshape(3, 3)[:, 2] for k, v in cams.items()}
+    p.write_text(json.dumps({k: {"cam_K": v["cam_K"], "depth_scale": v["depth_scale"]} for k, v in cams.items()}))
+    replace_dataset(src, tmp_path / "o", split=SPLIT, fraction=0.5, step_deg=90, seed=1, progress=False)
+    log = json.loads((tmp_path / "o" / "replace_log.json").read_text())["frames"]
+    assert len(log) == 4
+    for e in log:
+        assert e["axis"] == "plane fit" and e["fill"] == "plane"
+        n = truth[str(e["src_im_id"])]
+        assert np.degrees(np.arccos(np.clip(np.dot(e["axis_cam"], n), -1, 1))) < 1.5
