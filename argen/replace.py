@@ -53,6 +53,8 @@ _HEADLIGHT = Light("directional", 2.5, np.ones(3), np.diag([1.0, -1.0, -1.0, 1.0
 
 @dataclass
 class ReplaceSummary:
+    """What a replace run did: source frames used, frames written, wall time (seconds)."""
+
     source_frames: int
     written: int
     seconds: float
