@@ -54,11 +54,11 @@ def pose_times(frames: list, objects, num_points: int) -> dict[str, float]:
 
     pred = oracle_predictor(num_points=num_points, seed=0)
     cfg = PoseConfig(icp=True)
-    estimate(pred(frames[0]), objects, cfg, {})
+    estimate(pred(frames[0]), objects, cfg, {}, frames[0].features[:, :3])
     runs, dets = [], []
     for f in frames:
         t = {}
-        d, _ = estimate(pred(f), objects, cfg, t)
+        d, _ = estimate(pred(f), objects, cfg, t, f.features[:, :3])
         runs.append(t)
         dets.append(len(d))
     out = {k: statistics.median(r.get(k, 0.0) for r in runs) for k in ("voting", "kabsch", "icp")}

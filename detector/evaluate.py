@@ -103,11 +103,15 @@ def network_predictor(checkpoint, seed: int = 0, device: str | None = None) -> P
     return predict
 
 
-def estimate(preds: Predictions, objects: ObjectInfo, cfg: PoseConfig, timings: dict | None = None
-             ) -> tuple[list[Detection], list[Detection] | None]:
-    """Detections of one frame without and (when ``cfg.icp``) with ICP refinement; stage seconds into ``timings``."""
+def estimate(preds: Predictions, objects: ObjectInfo, cfg: PoseConfig, timings: dict | None = None,
+             cloud: np.ndarray | None = None) -> tuple[list[Detection], list[Detection] | None]:
+    """Detections of one frame without and (when ``cfg.icp``) with ICP refinement; stage seconds into ``timings``.
+
+    cloud: (M,3) metres, the frame's full point cloud, for ICP (see :func:`detector.pose.refine`); None: the
+    predicted points only.
+    """
     dets = detect(preds.xyz, preds.obj_ids, preds.confidence, preds.control_points, objects, cfg, timings)
-    return dets, (refine(dets, preds.xyz, objects, cfg, timings) if cfg.icp else None)
+    return dets, (refine(dets, preds.xyz, objects, cfg, timings, cloud) if cfg.icp else None)
 
 
 def error_matrix(dets: list[Detection], frame, table) -> np.ndarray:
@@ -154,7 +158,7 @@ def evaluate(predictor: Predictor, label_path: str | Path, out_dir: str | Path, 
             t0 = time.perf_counter()
             preds = predictor(frame)
             timings = dict(preds.timings)
-            res = dict(zip(("noicp", "icp"), estimate(preds, objects, cfg, timings)))
+            res = dict(zip(("noicp", "icp"), estimate(preds, objects, cfg, timings, frame.features[:, :3])))
             frame_time = time.perf_counter() - t0
             timings["total"] = frame_time
             times.append(timings)

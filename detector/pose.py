@@ -32,7 +32,9 @@ class PoseConfig:
     nms_fraction: centres closer than this fraction of the object's diameter are one detection;
     inlier_fraction: votes farther than this fraction of the diameter from the median are outliers;
     icp: refine with ICP; icp_distance: ICP correspondence distance as a fraction of the diameter;
-    icp_iterations: ICP iteration limit; icp_min_points: fewest scene points to run ICP.
+    icp_kernel: Tukey robust-loss scale as a fraction of the diameter (0 = plain least squares);
+    icp_iterations: ICP iteration limit; icp_min_points: fewest scene points to run ICP;
+    propagate: metres, a frame point belongs to its nearest predicted point within this distance (ICP points).
     """
 
     tau: float = 0.8
@@ -41,9 +43,11 @@ class PoseConfig:
     nms_fraction: float = 0.5
     inlier_fraction: float = 0.15
     icp: bool = False
-    icp_distance: float = 0.1
+    icp_distance: float = 0.2
+    icp_kernel: float = 0.0
     icp_iterations: int = 30
-    icp_min_points: int = 10
+    icp_min_points: int = 30
+    propagate: float = 0.01
 
 
 @dataclass
@@ -165,13 +169,15 @@ def _model_cloud(model_points: np.ndarray):
 
 
 def icp_refine(scene_points: np.ndarray, model_points: np.ndarray, R: np.ndarray, t: np.ndarray,
-               max_distance: float, iterations: int = 30, model_cloud=None) -> tuple[np.ndarray, np.ndarray]:
+               max_distance: float, iterations: int = 30, model_cloud=None, kernel: float | None = None
+               ) -> tuple[np.ndarray, np.ndarray]:
     """Refine a pose with point-to-plane ICP (open3d) of the instance's scene points onto the model.
 
     The scene (a partial view) is registered to the model surface, so every scene point has a true match.
     scene_points: (S,3) camera frame, metres; model_points: (P,3) model frame, metres; R (3,3), t (3,) the
     initial T_cam_model; max_distance: correspondence distance, metres; model_cloud: a cached
-    :func:`_model_cloud` of ``model_points``. Returns the refined R (3,3), t (3,) float64.
+    :func:`_model_cloud` of ``model_points``; kernel: Tukey robust-loss scale, metres (None: plain least squares).
+    Returns the refined R (3,3), t (3,) float64.
     """
     import open3d as o3d
 
@@ -181,7 +187,9 @@ def icp_refine(scene_points: np.ndarray, model_points: np.ndarray, R: np.ndarray
     T0 = np.eye(4)
     T0[:3, :3], T0[:3, 3] = R, t
     init = np.linalg.inv(T0)  # camera -> model
-    res = reg.registration_icp(source, target, max_distance, init, reg.TransformationEstimationPointToPlane(),
+    est = reg.TransformationEstimationPointToPlane(reg.TukeyLoss(k=kernel)) if kernel else \
+        reg.TransformationEstimationPointToPlane()
+    res = reg.registration_icp(source, target, max_distance, init, est,
                                reg.ICPConvergenceCriteria(max_iteration=iterations))
     if len(res.correspondence_set) < 3:
         return np.asarray(R, np.float64), np.asarray(t, np.float64)
@@ -251,20 +259,44 @@ def detect(xyz: np.ndarray, obj_ids: np.ndarray, confidence: np.ndarray, control
     return dets
 
 
-def refine(detections: list[Detection], xyz: np.ndarray, objects: ObjectInfo, cfg: PoseConfig,
-           timings: dict | None = None) -> list[Detection]:
-    """ICP-refined copies of ``detections`` using each one's member points ``xyz[members]`` (metres).
+def nearest_owner(xyz: np.ndarray, cloud: np.ndarray, radius: float) -> np.ndarray:
+    """Nearest predicted point of every cloud point (carries the network's segmentation to all points).
 
-    Detections with fewer than ``cfg.icp_min_points`` members are returned unchanged. Adds "icp" seconds to timings.
+    xyz: (K,3) metres, the predicted points; cloud: (M,3) metres; radius: metres, farther cloud points get no
+    owner. Returns (M,) int64 row of ``xyz``, -1 for none.
+    """
+    from scipy.spatial import cKDTree
+
+    dist, owner = cKDTree(np.asarray(xyz, np.float64)).query(np.asarray(cloud, np.float64), k=1,
+                                                            distance_upper_bound=radius)
+    return np.where(np.isfinite(dist), owner, -1).astype(np.int64)
+
+
+def refine(detections: list[Detection], xyz: np.ndarray, objects: ObjectInfo, cfg: PoseConfig,
+           timings: dict | None = None, cloud: np.ndarray | None = None) -> list[Detection]:
+    """ICP-refined copies of ``detections`` using each one's scene points (metres).
+
+    xyz: (K,3) the predicted points (``members`` index them); cloud: (M,3) the frame's full point cloud or None.
+    With a cloud, a detection's scene points are the cloud points whose nearest predicted point (within
+    ``cfg.propagate``) is one of its members (several times more points than the network's); else ``xyz[members]``.
+    Detections with fewer than ``cfg.icp_min_points`` scene points are returned unchanged. Adds "icp" seconds.
     """
     t0 = time.perf_counter()
+    owner = nearest_owner(xyz, cloud, cfg.propagate) if cloud is not None and detections else None
     out = []
     for d in detections:
-        if len(d.members) < cfg.icp_min_points:
+        if owner is not None:
+            member = np.zeros(len(xyz) + 1, bool)  # the extra last entry is the "no owner" row -1
+            member[d.members] = True
+            pts = np.asarray(cloud)[member[owner]]
+        else:
+            pts = xyz[d.members]
+        if len(pts) < cfg.icp_min_points:
             out.append(d)
             continue
-        R, t = icp_refine(xyz[d.members], objects.model_points[d.obj_id], d.R, d.t,
-                          cfg.icp_distance * objects.diameters[d.obj_id], cfg.icp_iterations, objects.cloud(d.obj_id))
+        dia = objects.diameters[d.obj_id]
+        R, t = icp_refine(pts, objects.model_points[d.obj_id], d.R, d.t, cfg.icp_distance * dia, cfg.icp_iterations,
+                          objects.cloud(d.obj_id), cfg.icp_kernel * dia if cfg.icp_kernel else None)
         out.append(Detection(d.obj_id, d.score, R, t, d.support, d.control_points, d.members, refined=True))
     if timings is not None:
         timings["icp"] = timings.get("icp", 0.0) + time.perf_counter() - t0

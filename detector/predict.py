@@ -233,7 +233,7 @@ def predict(predictor, inp: PointInput, objects: ObjectInfo, out_dir: Path, cfg:
     t0 = time.perf_counter()
     preds = predictor(SimpleNamespace(features=inp.features, scene_id=0, im_id=0))
     timings = dict(preds.timings)
-    dets, refined = estimate(preds, objects, cfg, timings)
+    dets, refined = estimate(preds, objects, cfg, timings, inp.features[:, :3])
     final = refined if refined is not None else dets
     timings["total"] = time.perf_counter() - t0
     names = names or {}

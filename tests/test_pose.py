@@ -129,3 +129,22 @@ def test_refine_uses_member_points():
     (r,) = refine([d], scene, objs, PoseConfig(icp=True), timings)
     assert r.refined and timings["icp"] > 0
     assert np.linalg.norm(r.t - t) < 0.3 * np.linalg.norm(d.t - t)
+
+
+def test_refine_carries_few_members_to_the_full_cloud():
+    """20 predicted points are too few for ICP; their nearest cloud points (the whole visible surface) are not."""
+    rng = np.random.default_rng(6)
+    obj = builtin_objects(["drill"])[0]
+    model = np.asarray(obj.mesh.sample(1500, seed=3))
+    R, t = Rotation.random(random_state=rng).as_matrix(), np.array([0.05, 0.0, 0.7])
+    cloud = visible_surface(obj, R, t, 6000, rng)
+    background = rng.uniform([-0.5, -0.5, 1.2], [0.5, 0.5, 1.5], (2000, 3))  # far: owned by no member
+    keys = cloud[rng.choice(len(cloud), 20, replace=False)]
+    xyz = np.concatenate([keys, background[:50]])
+    objs = ObjectInfo({5: obj.control_points}, {5: obj.diameter}, {5: model})
+    R0 = Rotation.from_rotvec([0.05, 0.0, 0.03]).as_matrix() @ R
+    d = Detection(5, 1.0, R0, t + [0.006, 0.0, 0.0], 20, np.zeros((9, 3)), np.arange(20))
+    (same,) = refine([d], xyz, objs, PoseConfig(icp=True))
+    assert not same.refined and same.t is d.t
+    (r,) = refine([d], xyz, objs, PoseConfig(icp=True, propagate=0.03), cloud=np.concatenate([cloud, background]))
+    assert r.refined and np.linalg.norm(r.t - t) < 0.2 * np.linalg.norm(d.t - t) and rot_err_deg(r.R, R) < 1.0
