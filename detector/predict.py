@@ -174,7 +174,8 @@ def load_input(spec: str, K: str | None = None, depth_scale: float | None = None
 
 
 def splat_cloud(features: np.ndarray, K: np.ndarray, size: tuple[int, int]) -> np.ndarray:
-    """(H,W,3) uint8 view of the points: colour when present, else grey shading by normal; nearest point wins."""
+    """(H,W,3) uint8 view of the points (N,9) through K (3,3), size (h, w): colour when present, else grey shading
+    by normal; nearer points drawn over farther ones."""
     from argen.preview import project
 
     h, w = size
@@ -189,7 +190,8 @@ def splat_cloud(features: np.ndarray, K: np.ndarray, size: tuple[int, int]) -> n
     img[uv[idx, 1], uv[idx, 0]] = np.clip(col[idx] * 255 + 0.5, 0, 255).astype(np.uint8)
     import cv2
 
-    return cv2.dilate(img, np.ones((3, 3), np.uint8))
+    k = int(np.clip(np.sqrt(h * w / max(len(idx), 1)), 3, 9))  # dots about as wide as the point spacing
+    return cv2.dilate(img, np.ones((k, k), np.uint8))
 
 
 def draw_detections(image: np.ndarray, K: np.ndarray, detections: list[Detection], objects: ObjectInfo,
