@@ -276,3 +276,19 @@ def test_oracle_multi_instance_f1_and_a_missed_instance(lchf_file, tmp_path):
     s2 = evaluate(drop_first_instance, lchf_file, tmp_path / "b")
     f = s2["f1"]["noicp"]
     assert f["precision"] == 1.0 and f["recall"] == pytest.approx((n - 2) / n) and f["num_det"] == n - 2
+
+
+def test_a_predictor_that_finds_nothing_scores_zero(label_file, tmp_path):
+    base = oracle_predictor()
+
+    def background(frame):
+        p = base(frame)
+        probs = np.zeros_like(p.class_probs)
+        probs[:, 0] = 1
+        return Predictions(p.xyz, probs, p.class_ids, p.control_points, p.confidence, p.point_index)
+
+    s = evaluate(background, label_file, tmp_path, icp=True)
+    assert s["mean"]["noicp"]["0.10"] == 0.0 and s["mean"]["icp"]["0.10"] == 0.0
+    assert s["f1"]["icp"] == {"precision": 0.0, "recall": 0.0, "f1": 0.0, "num_det": 0, "num_gt": s["f1"]["icp"]["num_gt"]}
+    assert (tmp_path / BOP_CSV).read_text() == "scene_id,im_id,obj_id,score,R,t,time\n"
+    assert json.loads((tmp_path / "report.json").read_text())["instances"][0]["noicp"] is None  # inf -> null
