@@ -178,14 +178,18 @@ NUM_POINTS = 1024
 
 
 def small_model_config():
-    """The cpu preset made tiny (TINY_MODEL); skips the test while detector.model and detector.ops are absent."""
-    pytest.importorskip("detector.ops")
-    model = pytest.importorskip("detector.model")
-    return model.ModelConfig.from_dict({**model.preset("cpu").to_dict(), **TINY_MODEL})
+    """The cpu preset made tiny (TINY_MODEL) for fast tests."""
+    from detector.model import ModelConfig, preset
+
+    return ModelConfig.from_dict({**preset("cpu").to_dict(), **TINY_MODEL})
 
 
 #: Overrides that make the cpu preset tiny (fewer keypoints and channels) for fast tests.
-TINY_MODEL: dict = {}
+TINY_MODEL: dict = {
+    "npoints": [256, 64, 32, 16, 8], "nsamples": [16, 8, 8, 8, 8],
+    "sa_mlps": [[8, 16], [16, 32], [32, 32], [32, 64], [64, 64]],
+    "fp_mlps": [[64], [64], [32], [32]], "head_channels": 32,
+}
 
 
 @pytest.fixture(scope="module")

@@ -11,9 +11,6 @@ import pytest
 import torch
 from typer.testing import CliRunner
 
-for _m in ("detector.ops", "detector.model", "detector.loss"):  # the network helper's modules, landing separately
-    pytest.importorskip(_m)
-
 from detector.cli import app
 from detector.train import read_metrics
 from test_data import TINY_MODEL, write_synthetic_h5

@@ -11,9 +11,6 @@ import pytest
 import torch
 import yaml
 
-for _m in ("detector.ops", "detector.model", "detector.loss"):  # the network helper's modules, landing separately
-    pytest.importorskip(_m)
-
 from detector.checkpoint import load_checkpoint, read_checkpoint, save_checkpoint
 from detector.data import StreamBatchSampler
 from detector.errors import DetectorError
@@ -161,8 +158,8 @@ def test_training_reduces_the_loss_quickly(h5_path, tmp_path):
     s = train(cfg, h5_path, tmp_path / "r", val_path=h5_path, progress=False)
     rows = read_metrics(tmp_path / "r" / "metrics.csv")
     first = np.mean([r["loss"] for r in rows[:3]])
-    assert s.last["loss"] < 0.5 * first, (first, s.last)
-    assert s.val["acc"] > 0.85
+    assert s.last["loss"] < first / 3, (first, s.last)  # measured: 6x
+    assert s.val["acc"] > 0.95, s.val  # measured: 0.98 (background alone is 0.82)
 
 
 @pytest.mark.slow
@@ -173,5 +170,5 @@ def test_cpu_preset_learns_four_frames(h5_path, tmp_path):
     s = train(cfg, h5_path, tmp_path / "r", val_path=h5_path, progress=False)
     rows = read_metrics(tmp_path / "r" / "metrics.csv")
     first = np.mean([r["loss"] for r in rows[:3]])
-    assert s.last["loss"] <= first / 10, (first, s.last)
-    assert s.val["acc"] > 0.95, s.val
+    assert s.last["loss"] <= first / 10, (first, s.last)  # measured: 68x in 90 s on one thread
+    assert s.val["acc"] > 0.95, s.val  # measured: 0.999
