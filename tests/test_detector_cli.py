@@ -45,10 +45,12 @@ def assert_one_line_error(res, *words: str) -> None:
 
 def test_train_refuse_resume_overwrite(h5_path, tmp_path):
     out = tmp_path / "runs" / "a"
-    res = run("train", h5_path, "--out", out, "--steps", "2", "--val", h5_path, *tiny_args())
+    res = run("train", h5_path, "--out", out, "--steps", "2", "--val", h5_path, "--seg-pretrain-steps", "1",
+              *tiny_args())
     assert res.exit_code == 0, res.output
     assert (out / "last.pt").is_file() and (out / "best.pt").is_file() and (out / "config.yaml").is_file()
-    assert [r["step"] for r in read_metrics(out / "metrics.csv")] == [1, 2]
+    rows = read_metrics(out / "metrics.csv")
+    assert [r["step"] for r in rows] == [1, 2] and [r["phase"] for r in rows] == ["seg", "full"]
     assert_one_line_error(run("train", h5_path, "--out", out, "--steps", "2", *tiny_args()), "--resume", "--overwrite")
     res = run("train", h5_path, "--out", out, "--resume", "--steps", "3", "--quiet")
     assert res.exit_code == 0, res.output

@@ -15,7 +15,7 @@ from detector.checkpoint import load_checkpoint, read_checkpoint, save_checkpoin
 from detector.data import StreamBatchSampler
 from detector.errors import DetectorError
 from detector.train import (TrainConfig, keypoint_targets, load_config_file, lr_factor, make_config,
-                            read_metrics, train)
+                            read_metrics, total_steps, train)
 from test_data import TINY_MODEL, write_synthetic_h5
 
 torch.set_num_threads(1)
@@ -61,6 +61,11 @@ def test_batches_visit_every_frame_once_per_epoch_and_resume_at_any_batch():
     assert [k[0] for k in keys] == sorted(k[0] for k in keys)
     assert next(iter(StreamBatchSampler(5, 3, seed=7, start=4))) == batches[4]
     assert batches != [next(iter(StreamBatchSampler(5, 3, seed=8, start=i))) for i in range(10)]
+
+
+def test_epochs_become_steps():
+    cfg = make_config("cpu", {"steps": None, "epochs": 1.5, "batch_size": 2})
+    assert total_steps(cfg, num_frames=4) == 3 and total_steps(cfg, num_frames=5) == 4
 
 
 def test_keypoint_targets_gather_the_labels_of_the_keypoints():
