@@ -84,8 +84,9 @@ def test_three_nn_weights_and_interpolation():
     np.testing.assert_allclose(three_interpolate(feats, self_idx, self_w)[0].numpy(), known, atol=1e-6)
 
 
-def test_numpy_and_torch_paths_agree():
-    p = cloud(600, 5)
+@pytest.mark.parametrize("offset", [0.0, 1.2])  # also a cloud in front of the camera (float32 cancellation)
+def test_numpy_and_torch_paths_agree(offset):
+    p = cloud(600, 5) + np.float32([0.1, -0.2, offset])
     a = precompute_indices(p, SPECS)
     b = compute_indices_torch(torch.from_numpy(p)[None], SPECS)
     assert set(a) == set(b) == {"sample_0", "sample_1", "sample_2", "group_0", "group_1", "group_2",
