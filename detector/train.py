@@ -4,7 +4,13 @@ atomic checkpoints (``last.pt`` every N steps, ``best.pt`` on validation loss), 
 A run folder holds ``config.yaml`` (the resolved :class:`TrainConfig`), ``metrics.csv`` (one row per step),
 ``last.pt`` and, with a validation file, ``best.pt``. Resuming reloads model, optimiser, scheduler, torch
 RNG and the data position; items are pure functions of (seed, epoch, frame), so the resumed run repeats
-the uninterrupted one step for step.
+the uninterrupted one step for step. Resuming with more ``steps`` is allowed (the schedule is a function
+of (step, total), so it stretches from there); other settings must stay those of the run.
+
+Presets (:data:`TRAIN_PRESETS`): ``cpu`` = the TrainConfig defaults (cpu model, 4096 points, 2000 steps,
+lr 2e-3, cosine, 50 warm-up steps); ``paper`` = the paper's model, 16384 points, batch 4, 20000 steps,
+lr 1e-3, 500 warm-up steps, the first 2000 steps segmentation-only (the paper pre-trains segmentation;
+it gives no step counts or learning rate, these are ours).
 """
 
 from __future__ import annotations
