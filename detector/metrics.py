@@ -104,7 +104,7 @@ def match_frame(scores: np.ndarray, error: np.ndarray, diameters: np.ndarray, va
     hit = m >= 0
     gt_error[m[hit]] = error[np.flatnonzero(hit), m[hit]]
     f = greedy_match(scores, error, k_f1 * diameters)
-    ignored = (f >= 0) & ~valid[np.maximum(f, 0)]
+    ignored = (f >= 0) & ~valid[np.maximum(f, 0)] if len(valid) else np.zeros(len(f), bool)
     tp = int(((f >= 0) & ~ignored).sum())
     return FrameMatch(gt_error, tp, int(len(scores) - ignored.sum()), int(valid.sum()))
 

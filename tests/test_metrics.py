@@ -74,3 +74,8 @@ def test_match_frame_ignores_invalid_instances_and_their_detections():
     err = np.array([[0.001, np.inf], [np.inf, 0.002], [np.inf, 0.5]])
     m = match_frame(np.array([0.9, 0.8, 0.7]), err, np.full(2, 0.1), valid=np.array([True, False]))
     assert (m.tp, m.num_det, m.num_gt) == (1, 2, 1)  # the hit on the ignored instance is neither TP nor FP
+
+
+def test_match_frame_detections_of_an_object_with_no_instance_in_the_frame():
+    m = match_frame(np.array([0.9, 0.5]), np.zeros((2, 0)), np.zeros(0), valid=np.zeros(0, bool))
+    assert (m.tp, m.num_det, m.num_gt) == (0, 2, 0) and m.gt_error.shape == (0,)
