@@ -102,6 +102,7 @@ def train_cmd(
     quiet: bool = typer.Option(False, "--quiet", help="no progress bar"),
 ):
     """Train the multi-task network on a label file; checkpoints and metrics go to --out."""
+    from detector import distributed
     from detector.train import load_config_file, make_config, train
 
     if steps is not None and epochs is not None:
@@ -126,9 +127,16 @@ def train_cmd(
             raise DetectorError("give --preset or --config, not both")
         base = load_config_file(config)
     cfg = make_config(preset or "cpu", overrides, base)
-    prepare_run_folder(out, resume, overwrite)
-    summary = train(cfg, train_file, out, val_path=val, resume=resume, progress=not quiet)
-    typer.echo(f"{out}: {summary.line()}")
+    ctx = distributed.setup(cfg.device)  # under torchrun: join the process group; else a world of one
+    try:
+        if ctx.is_main:
+            prepare_run_folder(out, resume, overwrite)
+        ctx.barrier()
+        summary = train(cfg, train_file, out, val_path=val, resume=resume, progress=not quiet)
+    finally:
+        distributed.teardown(ctx)
+    if ctx.is_main:
+        typer.echo(f"{out}: {summary.line()}" + (f" ({ctx.world_size} processes)" if ctx.enabled else ""))
 
 
 def register_commands() -> None:

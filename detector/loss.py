@@ -64,16 +64,19 @@ def mean_control_point_distance(pred: torch.Tensor, true: torch.Tensor) -> torch
     return (pred - true).norm(dim=-1).mean(dim=-1)
 
 
-def multitask_loss(out: dict, target: dict, cfg: LossConfig) -> tuple[torch.Tensor, dict[str, float]]:
+def multitask_loss(out: dict, target: dict, cfg: LossConfig, pos_count: torch.Tensor | float | None = None
+                   ) -> tuple[torch.Tensor, dict[str, float]]:
     """Total loss (scalar tensor) and its unweighted parts as floats: ``cls``, ``offset``, ``conf``, ``total``.
 
     out: PoseNet output (``logits`` (B, K, C+1), ``xyz`` (B, K, 3), ``offsets`` (B, K, 9, 3) metres,
     ``confidence`` (B, K)); target: ``cls`` (B, K) int64 (0 = background), ``control_points`` (B, K, 9, 3) metres.
+    pos_count: the object-keypoint count that divides the offset and confidence sums (default: this batch's;
+    data-parallel training passes the global batch's count, at least 1, divided by the number of processes).
     """
     logits, cls = out["logits"], target["cls"].long()
     ce = F.cross_entropy(logits.reshape(-1, logits.shape[-1]), cls.reshape(-1))
     pos = (cls > 0).to(logits.dtype)
-    n_pos = pos.sum().clamp(min=1.0)
+    n_pos = pos.sum().clamp(min=1.0) if pos_count is None else torch.as_tensor(pos_count, dtype=logits.dtype)
     true_offsets = target["control_points"].to(out["offsets"].dtype) - out["xyz"][:, :, None].detach()
     sl1 = F.smooth_l1_loss(out["offsets"] / cfg.offset_unit, true_offsets / cfg.offset_unit,
                            reduction="none", beta=cfg.beta).mean(dim=(-1, -2))  # (B, K)

@@ -7,6 +7,11 @@ RNG and the data position; items are pure functions of (seed, epoch, frame), so 
 the uninterrupted one step for step. Resuming with more ``steps`` is allowed (the schedule is a function
 of (step, total), so it stretches from there); other settings must stay those of the run.
 
+Under ``torchrun`` (:mod:`detector.distributed`) the same function trains data-parallel with DDP:
+``batch_size`` is the global batch, split over the processes, and the loss is normalised over the global
+batch, so N processes follow the single-process run up to floating-point order; rank 0 alone writes the
+run folder and validates. With ``model.norm=bn`` each process normalises over its own share of the batch.
+
 Presets (:data:`TRAIN_PRESETS`): ``cpu`` = the TrainConfig defaults (cpu model, 4096 points, 2000 steps,
 lr 2e-3, cosine, 50 warm-up steps); ``paper`` = the paper's model, 16384 points, batch 4, 20000 steps,
 lr 1e-3, 500 warm-up steps, the first 2000 steps segmentation-only (the paper pre-trains segmentation;
@@ -32,6 +37,7 @@ import yaml
 
 from detector.checkpoint import read_checkpoint, save_checkpoint
 from detector.data import NORMALISATION, PointDataset, StreamBatchSampler, collate
+from detector.distributed import DistContext
 from detector.errors import DetectorError
 from detector.loss import LossConfig, multitask_loss
 
@@ -293,14 +299,27 @@ def keypoint_targets(batch: dict[str, torch.Tensor], keypoints: torch.Tensor) ->
 
 
 def forward_loss(model: torch.nn.Module, batch: dict[str, torch.Tensor], loss_cfg: LossConfig, device: torch.device,
-                 use_indices: bool) -> tuple[torch.Tensor, dict[str, float]]:
-    """Forward a batch and return the loss and its parts, plus ``acc``: keypoint segmentation accuracy."""
+                 use_indices: bool, ctx: DistContext | None = None) -> tuple[torch.Tensor, dict[str, float]]:
+    """Forward a batch and return the loss and its parts, plus ``acc``: keypoint segmentation accuracy.
+
+    With a distributed ``ctx`` the batch is this process's share: the offset and confidence terms are
+    normalised by the object keypoints of the whole global batch (so DDP's gradient mean equals the
+    single-process gradient), the reported parts are means over the processes, and during segmentation
+    pre-training the unused heads get zero gradients (DDP needs a gradient for every parameter).
+    """
     feats, idx = split_batch(batch, device, use_indices)
     out = model(feats, idx)
     target = keypoint_targets(batch, out["keypoints"])
-    loss, parts = multitask_loss(out, target, loss_cfg)
+    pos_count = None
+    if ctx is not None and ctx.enabled:
+        pos_count = ctx.sum_((target["cls"] > 0).sum().to(torch.float64)).clamp(min=1.0) / ctx.world_size
+    loss, parts = multitask_loss(out, target, loss_cfg, pos_count=pos_count)
+    if ctx is not None and ctx.enabled and loss_cfg.seg_only:
+        loss = loss + 0.0 * (out["offsets"].sum() + out["confidence"].sum())
     parts = {k: float(v) for k, v in parts.items()}
     parts["acc"] = float((out["logits"].argmax(-1) == target["cls"]).float().mean())
+    if ctx is not None:
+        parts = ctx.mean_of(parts)
     return loss, parts
 
 
@@ -397,6 +416,11 @@ def set_rng_state(state: dict, device: torch.device) -> None:
         torch.cuda.set_rng_state(state["cuda"].cpu(), device)
 
 
+def start_step(payload: dict) -> int:
+    """The step a checkpoint payload was written after."""
+    return int(payload["step"])
+
+
 def check_resumable(saved: dict, cfg: TrainConfig, path: Path) -> None:
     """A resumed run must use the settings that produced the checkpoint (bar RESUME_FREE_KEYS)."""
     now = config_to_dict(cfg)
@@ -411,8 +435,20 @@ def train(cfg: TrainConfig, train_path: str | Path, out_dir: str | Path, val_pat
     """Train a PoseNet on a label file; write checkpoints and metrics to ``out_dir``; return a summary.
 
     ``stop_after``: end after this step as if interrupted there (``last.pt`` is written; ``resume=True``
-    continues the same schedule), e.g. to train in time-boxed pieces.
+    continues the same schedule), e.g. to train in time-boxed pieces. Under torchrun this joins the process
+    group (:func:`detector.distributed.setup`) and trains with DDP.
     """
+    from detector import distributed
+
+    ctx = distributed.setup(cfg.device)
+    try:
+        return _train(cfg, train_path, out_dir, val_path, resume, progress, stop_after, ctx)
+    finally:
+        distributed.teardown(ctx)
+
+
+def _train(cfg: TrainConfig, train_path: str | Path, out_dir: str | Path, val_path: str | Path | None, resume: bool,
+           progress: bool, stop_after: int | None, ctx: DistContext) -> TrainSummary:
     from tqdm import tqdm
 
     from detector.model import PoseNet
@@ -424,21 +460,24 @@ def train(cfg: TrainConfig, train_path: str | Path, out_dir: str | Path, val_pat
         raise DetectorError(f"nothing to resume: {last_path} does not exist")
     if not resume and last_path.exists():
         raise DetectorError(f"{out_dir} already holds a run; resume it or choose another folder")
+    ctx.barrier()  # no process may see last.pt written by rank 0 before passing the checks above
     device = resolve_device(cfg.device)
+    if device.type == "cuda" and ctx.enabled:
+        device = torch.device("cuda", ctx.local_rank)
     use_indices = cfg.indices == "loader" or (cfg.indices == "auto" and device.type == "cpu")
     model_cfg = build_model_config(cfg)
     ds = PointDataset(train_path, model_cfg, cfg.num_points, augment=cfg.augment, seed=cfg.seed,
                       class_ids=cfg.class_ids, precompute=use_indices)
     val_ds = None
-    if val_path is not None:
+    if val_path is not None and ctx.is_main:
         val_ds = PointDataset(val_path, model_cfg, cfg.num_points, augment=False, seed=cfg.seed,
                               class_ids=ds.class_ids, precompute=use_indices)
     total = total_steps(cfg, len(ds))
     devices = [device] if device.type == "cuda" else []
     with torch.random.fork_rng(devices=devices):
         torch.manual_seed(cfg.seed)
-        model = PoseNet(model_cfg, num_classes=len(ds.class_ids)).to(device)
-        opt = torch.optim.AdamW(model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
+        net = PoseNet(model_cfg, num_classes=len(ds.class_ids)).to(device)
+        opt = torch.optim.AdamW(net.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
         sched = torch.optim.lr_scheduler.LambdaLR(opt, lambda s: lr_factor(s, total, cfg))
         start, best, val = 0, None, None
         if resume:
@@ -447,32 +486,43 @@ def train(cfg: TrainConfig, train_path: str | Path, out_dir: str | Path, val_pat
             if "optimizer" not in state:
                 raise DetectorError(f"{last_path} holds no training state to resume from")
             check_resumable(state["config"], cfg, last_path)
-            model.load_state_dict(payload["model_state"])
+            net.load_state_dict(payload["model_state"])
             opt.load_state_dict(state["optimizer"])
             sched.load_state_dict(state["scheduler"])
+            for group, base_lr in zip(opt.param_groups, sched.base_lrs):  # the schedule of this run's total
+                group["lr"] = base_lr * lr_factor(start_step(payload), total, cfg)
             set_rng_state(state["rng"], device)
             start, best, val = int(payload["step"]), state.get("best_val_loss"), state.get("val")
-        out_dir.mkdir(parents=True, exist_ok=True)
-        (out_dir / "config.yaml").write_text(yaml.safe_dump(config_to_dict(cfg), sort_keys=False))
-        log = MetricsLog(out_dir / "metrics.csv", keep_until=start if resume else None)
+        model = net
+        if ctx.enabled:
+            model = torch.nn.parallel.DistributedDataParallel(
+                net, device_ids=[device.index] if device.type == "cuda" else None)
+        log = None
+        if ctx.is_main:
+            out_dir.mkdir(parents=True, exist_ok=True)
+            (out_dir / "config.yaml").write_text(yaml.safe_dump(config_to_dict(cfg), sort_keys=False))
+            log = MetricsLog(out_dir / "metrics.csv", keep_until=start if resume else None)
 
         def save(path: Path, step: int) -> None:
             extra = {"train_config": config_to_dict(cfg), "train_file": str(train_path), "val": val}
             train_state = {"optimizer": opt.state_dict(), "scheduler": sched.state_dict(), "rng": rng_state(device),
                            "data_position": step * cfg.batch_size, "config": config_to_dict(cfg),
                            "best_val_loss": best, "val": val, "total_steps": total}
-            save_checkpoint(path, model=model, model_config=model_cfg, class_ids=ds.class_ids, objects=ds.objects,
+            save_checkpoint(path, model=net, model_config=model_cfg, class_ids=ds.class_ids, objects=ds.objects,
                             num_points=cfg.num_points, step=step, normalisation=NORMALISATION, extra=extra,
                             train_state=train_state if path == last_path else None)
 
-        sampler = StreamBatchSampler(len(ds), cfg.batch_size, cfg.seed, start=start)
+        sampler = StreamBatchSampler(len(ds), cfg.batch_size, cfg.seed, start=start, rank=ctx.rank,
+                                     world_size=ctx.world_size)
         loader = torch.utils.data.DataLoader(ds, batch_sampler=sampler, collate_fn=collate,
                                              num_workers=cfg.num_workers, worker_init_fn=_worker_init,
                                              pin_memory=device.type == "cuda",
                                              generator=loader_generator(cfg.seed))
         seg_cfg = dataclasses.replace(cfg.loss, seg_only=True)
+        seg_unused = [*net.offset_head.parameters(), *net.conf_head.parameters()]
         recent: list[dict] = []
-        bar = tqdm(total=total, initial=start, disable=not progress, dynamic_ncols=True, desc="train")
+        bar = tqdm(total=total, initial=start, disable=not progress or not ctx.is_main, dynamic_ncols=True,
+                   desc="train")
         t0 = t_last = time.perf_counter()
         step = start
         batches = iter(loader)
@@ -484,11 +534,14 @@ def train(cfg: TrainConfig, train_path: str | Path, out_dir: str | Path, val_pat
                 phase = "seg" if step < cfg.seg_pretrain_steps else "full"
                 lr = opt.param_groups[0]["lr"]
                 loss, parts = forward_loss(model, batch, seg_cfg if phase == "seg" else cfg.loss, device,
-                                           use_indices)
+                                           use_indices, ctx)
                 opt.zero_grad(set_to_none=True)
                 loss.backward()
+                if ctx.enabled and phase == "seg":  # as in one process: the unused heads take no AdamW step
+                    for p in seg_unused:
+                        p.grad = None
                 if cfg.grad_clip > 0:
-                    torch.nn.utils.clip_grad_norm_(model.parameters(), cfg.grad_clip)
+                    torch.nn.utils.clip_grad_norm_(net.parameters(), cfg.grad_clip)
                 opt.step()
                 sched.step()
                 step += 1
@@ -499,21 +552,23 @@ def train(cfg: TrainConfig, train_path: str | Path, out_dir: str | Path, val_pat
                 t_last = now
                 recent = (recent + [row])[-10:]
                 if val_ds is not None and (step % cfg.val_every == 0 or step == total):
-                    val = evaluate(model, val_ds, cfg, device, use_indices)
+                    val = evaluate(net, val_ds, cfg, device, use_indices)
                     row.update(val_loss=val["loss"], val_acc=val["acc"])
                     if best is None or val["loss"] < best:
                         best = val["loss"]
                         save(out_dir / "best.pt", step)
-                log.write(row)
+                if log is not None:
+                    log.write(row)
                 bar.set_postfix_str(f"loss {row['loss']:.3f} cls {row['cls']:.3f} off {row['offset']:.4f} "
                                     f"conf {row['conf']:.3f} acc {row['acc']:.3f} lr {lr:.2e}", refresh=False)
                 bar.update(1)
-                if step % cfg.checkpoint_every == 0 or step == end:
+                if ctx.is_main and (step % cfg.checkpoint_every == 0 or step == end):
                     save(last_path, step)
         finally:
             del batches  # stops the loader workers now
             bar.close()
-            log.close()
+            if log is not None:
+                log.close()
             ds.close()
             if val_ds is not None:
                 val_ds.close()

@@ -115,6 +115,15 @@ def test_resume_repeats_the_uninterrupted_run_exactly(h5_path, tmp_path):
     assert all(torch.allclose(wa[k].float(), wb[k].float(), atol=1e-6) for k in wa)
 
 
+def test_resuming_with_more_steps_follows_the_longer_schedule_from_there(h5_path, tmp_path):
+    train(tiny_config(steps=2), h5_path, tmp_path / "r", progress=False)
+    train(make_config(base=tiny_config(steps=5)), h5_path, tmp_path / "r", progress=False, resume=True)
+    lrs = [r["lr"] for r in read_metrics(tmp_path / "r" / "metrics.csv")]
+    cfg = tiny_config(steps=5)
+    expected = [cfg.lr * lr_factor(s, 2, cfg) for s in range(2)] + [cfg.lr * lr_factor(s, 5, cfg) for s in range(2, 5)]
+    assert lrs == pytest.approx(expected, rel=1e-6)
+
+
 def test_a_run_folder_is_not_trained_over_and_resume_needs_a_run(h5_path, tmp_path):
     cfg = tiny_config(steps=1)
     train(cfg, h5_path, tmp_path / "r", progress=False)
