@@ -1,11 +1,12 @@
 """Benchmark `argen label` on linemod-template frames (640x480, Kinect noise): frames/s on one process.
 
-    .venv/bin/python bench/bench_label.py [--frames 20] [--repeats 3] [--models DIR] [--dataset DIR]
+    .venv/bin/python bench/bench_label.py [--frames 20] [--repeats 3] [--models DIR] [--dataset DIR] [--workers 1,2]
 
 Makes a capture-sim dataset once (LineMOD models from ../shared/data/lm when there, else the built-in
 objects; skipped with --dataset), then labels it ``--repeats`` times with one process and prints the
 median frames/s of the whole run (model loading, labelling, part files and the final file included)
-and of ``label_frame`` alone, with the per-stage breakdown of one frame.
+and of ``label_frame`` alone. ``--workers 1,2`` times whole runs with each worker count, interleaved
+(1, 2, 1, 2, ...) so that both see the same machine load, and prints the speed-up of the medians.
 """
 
 from __future__ import annotations
@@ -43,6 +44,7 @@ def main() -> None:
     ap.add_argument("--models", type=Path, default=LM if (LM / "models_info.json").is_file() else None)
     ap.add_argument("--dataset", type=Path, default=None, help="label this BOP dataset instead of making one")
     ap.add_argument("--max-points", type=int, default=30000)
+    ap.add_argument("--workers", default="1", help="comma-separated worker counts to compare, e.g. 1,2")
     args = ap.parse_args()
     tmp = Path(tempfile.mkdtemp(prefix="bench_label_"))
     try:
@@ -54,12 +56,17 @@ def main() -> None:
         print(f"machine: {platform.processor() or platform.machine()}, {os.cpu_count()} cores; dataset: {ds} "
               f"({len(frames)} frames, models: {args.models or 'builtin'}); max_points {args.max_points}")
         cfg = LabelConfig(max_points=args.max_points)
-        runs = []
+        counts = [int(w) for w in args.workers.split(",")]
+        rates: dict[int, list[float]] = {w: [] for w in counts}
         for r in range(args.repeats):
-            out = tmp / f"out{r}.h5"
-            t0 = time.perf_counter()
-            run_label(LabelRequest(dataset=ds, split="train_pbr", out=out, cfg=cfg, progress=False))
-            runs.append(len(frames) / (time.perf_counter() - t0))
+            for w in counts:
+                out = tmp / f"out{r}_{w}.h5"
+                t0 = time.perf_counter()
+                run_label(LabelRequest(dataset=ds, split="train_pbr", out=out, cfg=cfg, progress=False, workers=w))
+                rates[w].append(len(frames) / (time.perf_counter() - t0))
+                if out != tmp / "out0.h5":
+                    out.replace(tmp / "out0.h5")
+        runs = rates[counts[0]]
         ids = sorted({g.obj_id for s in scenes.values() for gl in s.gts.values() for g in gl})
         lab = Labeller(load_label_objects(ds / "models", ids), LabelConfig(max_points=args.max_points, max_depth=1.75))
         per = []
@@ -70,8 +77,12 @@ def main() -> None:
             per.append(len(frames) / (time.perf_counter() - t0))
         size = (tmp / "out0.h5").stat().st_size / len(frames) / 1e6
         print(f"command: argen label {ds} --split train_pbr --out X.h5 --max-points {args.max_points}")
-        print(f"whole run (1 process): median {statistics.median(runs):.1f} frames/s "
-              f"(runs: {', '.join(f'{v:.1f}' for v in runs)}); file {size:.2f} MB per frame")
+        for w in counts:
+            print(f"whole run ({w} worker{'s' if w > 1 else ''}): median {statistics.median(rates[w]):.1f} frames/s "
+                  f"(runs: {', '.join(f'{v:.1f}' for v in rates[w])}); file {size:.2f} MB per frame")
+        for w in counts[1:]:
+            print(f"speed-up {w} vs {counts[0]} workers: "
+                  f"{statistics.median(rates[w]) / statistics.median(rates[counts[0]]):.2f}x")
         print(f"label_frame only: median {statistics.median(per):.1f} frames/s")
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
