@@ -58,14 +58,13 @@ def main() -> None:
         cfg = LabelConfig(max_points=args.max_points)
         counts = [int(w) for w in args.workers.split(",")]
         rates: dict[int, list[float]] = {w: [] for w in counts}
-        for r in range(args.repeats):
+        out = tmp / "out.h5"
+        for _ in range(args.repeats):
             for w in counts:
-                out = tmp / f"out{r}_{w}.h5"
+                out.unlink(missing_ok=True)
                 t0 = time.perf_counter()
                 run_label(LabelRequest(dataset=ds, split="train_pbr", out=out, cfg=cfg, progress=False, workers=w))
                 rates[w].append(len(frames) / (time.perf_counter() - t0))
-                if out != tmp / "out0.h5":
-                    out.replace(tmp / "out0.h5")
         runs = rates[counts[0]]
         ids = sorted({g.obj_id for s in scenes.values() for gl in s.gts.values() for g in gl})
         lab = Labeller(load_label_objects(ds / "models", ids), LabelConfig(max_points=args.max_points, max_depth=1.75))
@@ -75,7 +74,7 @@ def main() -> None:
             for sid, im in frames:
                 lab.label_frame(scenes[sid], im)
             per.append(len(frames) / (time.perf_counter() - t0))
-        size = (tmp / "out0.h5").stat().st_size / len(frames) / 1e6
+        size = out.stat().st_size / len(frames) / 1e6
         print(f"command: argen label {ds} --split train_pbr --out X.h5 --max-points {args.max_points}")
         for w in counts:
             print(f"whole run ({w} worker{'s' if w > 1 else ''}): median {statistics.median(rates[w]):.1f} frames/s "

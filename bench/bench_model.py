@@ -28,6 +28,7 @@ import torch
 from detector.loss import LossConfig, multitask_loss
 from detector.model import PoseNet, preset
 from detector.ops import precompute_indices
+from detector.train import keypoint_targets
 
 NUM_POINTS = {"cpu": 4096, "paper": 16384}
 
@@ -70,9 +71,7 @@ def bench(name: str, batch: int, steps: int, device: torch.device, torch_indices
             torch.cuda.synchronize()
         t = time.perf_counter()
         out = model(x, idx)
-        kp = out["keypoints"]
-        target = {"cls": torch.gather(cls, 1, kp),
-                  "control_points": cps[torch.arange(batch, device=device)[:, None], kp]}
+        target = keypoint_targets({"cls": cls, "control_points": cps}, out["keypoints"])
         loss, _ = multitask_loss(out, target, LossConfig())
         opt.zero_grad(set_to_none=True)
         loss.backward()

@@ -416,11 +416,6 @@ def set_rng_state(state: dict, device: torch.device) -> None:
         torch.cuda.set_rng_state(state["cuda"].cpu(), device)
 
 
-def start_step(payload: dict) -> int:
-    """The step a checkpoint payload was written after."""
-    return int(payload["step"])
-
-
 def check_resumable(saved: dict, cfg: TrainConfig, path: Path) -> None:
     """A resumed run must use the settings that produced the checkpoint (bar RESUME_FREE_KEYS)."""
     now = config_to_dict(cfg)
@@ -489,10 +484,10 @@ def _train(cfg: TrainConfig, train_path: str | Path, out_dir: str | Path, val_pa
             net.load_state_dict(payload["model_state"])
             opt.load_state_dict(state["optimizer"])
             sched.load_state_dict(state["scheduler"])
-            for group, base_lr in zip(opt.param_groups, sched.base_lrs):  # the schedule of this run's total
-                group["lr"] = base_lr * lr_factor(start_step(payload), total, cfg)
             set_rng_state(state["rng"], device)
             start, best, val = int(payload["step"]), state.get("best_val_loss"), state.get("val")
+            for group, base_lr in zip(opt.param_groups, sched.base_lrs):  # the schedule of this run's total
+                group["lr"] = base_lr * lr_factor(start, total, cfg)
         model = net
         if ctx.enabled:
             model = torch.nn.parallel.DistributedDataParallel(

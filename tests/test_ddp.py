@@ -58,10 +58,14 @@ def _train_args(h5: Path, out: Path, steps: int) -> list[str]:
     return args
 
 
-def _run(cmd: list[str], tmp_path: Path) -> subprocess.CompletedProcess:
+def _env() -> dict[str, str]:
+    """This environment with one thread per process and without an outer torchrun's variables."""
     env = {**os.environ, "OMP_NUM_THREADS": "1", "PYTHONPATH": str(Path(__file__).parent)}
-    env = {k: v for k, v in env.items() if k not in ("RANK", "WORLD_SIZE", "LOCAL_RANK", "MASTER_ADDR", "MASTER_PORT")}
-    res = subprocess.run(cmd, capture_output=True, text=True, timeout=600, env=env, cwd=tmp_path)
+    return {k: v for k, v in env.items() if k not in ("RANK", "WORLD_SIZE", "LOCAL_RANK", "MASTER_ADDR", "MASTER_PORT")}
+
+
+def _run(cmd: list[str], tmp_path: Path) -> subprocess.CompletedProcess:
+    res = subprocess.run(cmd, capture_output=True, text=True, timeout=600, env=_env(), cwd=tmp_path)
     assert res.returncode == 0, res.stdout + res.stderr
     return res
 
@@ -80,22 +84,24 @@ def test_two_gloo_processes_match_single_process_training(tmp_path):
     for a, b in zip(one, two):
         for key in ("loss", "cls", "offset", "conf", "acc"):
             assert b[key] == pytest.approx(a[key], rel=1e-5, abs=1e-7), (a["step"], key)
-    w1 = load_checkpoint(tmp_path / "single" / "last.pt").model.state_dict()
+    single = load_checkpoint(tmp_path / "single" / "last.pt")
+    w1 = single.model.state_dict()
     w2 = load_checkpoint(tmp_path / "ddp" / "last.pt").model.state_dict()
     assert w1.keys() == w2.keys()
     worst = max(float((w1[k].double() - w2[k].double()).abs().max()) for k in w1 if w1[k].is_floating_point())
     assert worst < 1e-5, worst  # 4 AdamW steps of lr 2e-3 move weights by up to ~8e-3
-    moved = max(float((w1[k].double() - w0).abs().max()) for k, w0 in _initial_weights(tmp_path).items())
+    moved = max(float((w1[k].double() - w0).abs().max())
+                for k, w0 in _initial_weights(tmp_path, len(single.class_ids)).items())
     assert moved > 1e-3  # the comparison is not between two untrained models
 
 
-def _initial_weights(tmp_path: Path) -> dict[str, torch.Tensor]:
+def _initial_weights(tmp_path: Path, num_classes: int) -> dict[str, torch.Tensor]:
     from detector.model import PoseNet
     from detector.train import build_model_config, load_config_file
 
     cfg = load_config_file(tmp_path / "single" / "config.yaml")
     torch.manual_seed(cfg.seed)
-    net = PoseNet(build_model_config(cfg), num_classes=len(load_checkpoint(tmp_path / "single" / "last.pt").class_ids))
+    net = PoseNet(build_model_config(cfg), num_classes=num_classes)
     return {k: v.double() for k, v in net.state_dict().items() if v.is_floating_point()}
 
 
@@ -103,9 +109,8 @@ def test_batch_not_divisible_by_the_processes_is_one_line(tmp_path):
     h5 = write_synthetic_h5(tmp_path / "syn.h5", num_frames=3, seed=5)
     args = _train_args(h5, tmp_path / "r", 2)
     args[args.index("--batch-size") + 1] = "3"
-    env = {**os.environ, "OMP_NUM_THREADS": "1"}
     res = subprocess.run([sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node", "2",
-                          "-m", "detector.cli", *args], capture_output=True, text=True, timeout=600, env=env)
+                          "-m", "detector.cli", *args], capture_output=True, text=True, timeout=600, env=_env())
     assert res.returncode != 0
     assert "detector: error: batch_size 3 is not divisible by the 2 distributed processes" in res.stderr
     assert not (tmp_path / "r" / "last.pt").exists()

@@ -77,14 +77,13 @@ def timing(rep: dict) -> str:
 
 
 def training(run: Path) -> str:
-    import csv
+    from detector.train import read_metrics
 
-    with (run / "metrics.csv").open() as f:
-        rows = list(csv.DictReader(f))
+    rows = read_metrics(run / "metrics.csv")
     last = rows[-50:]
-    mean = {k: sum(float(r[k]) for r in last) / len(last) for k in ("loss", "cls", "offset", "conf", "acc")}
-    rate = sorted(float(r["steps_per_s"]) for r in rows)[len(rows) // 2]
-    return (f"{len(rows)} steps ({float(rows[-1]['epoch']):.1f} epochs), median {rate:.2f} steps/s, "
+    mean = {k: sum(r[k] for r in last) / len(last) for k in ("loss", "cls", "offset", "conf", "acc")}
+    rate = sorted(r["steps_per_s"] for r in rows)[len(rows) // 2]
+    return (f"{len(rows)} steps ({rows[-1]['epoch']:.1f} epochs), median {rate:.2f} steps/s, "
             f"mean of the last 50 steps: loss {mean['loss']:.3f} (cls {mean['cls']:.3f}, offset {mean['offset']:.3f}, "
             f"conf {mean['conf']:.4f}), keypoint accuracy {mean['acc']:.3f}")
 
