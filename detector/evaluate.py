@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 
 from detector.metrics import THRESHOLDS, accuracy, accuracy_curve, match_frame, pose_error, prf
-from detector.pose import Detection, ObjectInfo, PoseConfig, detect, refine
+from detector.pose import Detection, ObjectInfo, PoseConfig, detect, icp_counts, refine
 from detector.report import STAGES, bop_row, write_report
 
 BOP_CSV = "results_bop.csv"
@@ -138,13 +138,15 @@ def evaluate(predictor: Predictor, label_path: str | Path, out_dir: str | Path, 
 
     Ground-truth instances with ``visib_fract < min_visib`` are ignored (neither missed nor matched).
     Returns the summary written to report.json (per-object ADD accuracies at 10/15/30 % without and with ICP,
-    F1 at 15 %, mean ms per stage, fps).
+    F1 at 15 %, mean ms per stage, fps, and with ICP how many detections had their ICP pose accepted, rejected
+    (it did not fit better, so the unrefined pose was kept) or skipped (too few points): "icp_refinement").
     """
     from argen.h5 import LabelFile
 
     cfg = replace(cfg or PoseConfig(), icp=icp)
     keys = ("noicp", "icp") if icp else ("noicp",)
     gt_rows, bop_rows, counts, times = [], [], {}, []
+    icp_status = {"accepted": 0, "rejected": 0, "skipped": 0}
     with LabelFile(label_path) as lf:
         table = lf.objects
         objects = ObjectInfo.from_table(table)
@@ -184,13 +186,17 @@ def evaluate(predictor: Predictor, label_path: str | Path, out_dir: str | Path, 
                     row[key] = float(gt_err[np.searchsorted(cols, g)])
                 gt_rows.append(row)
             final = res["icp"] if icp else res["noicp"]
+            if icp:
+                for k, v in icp_counts(final).items():
+                    icp_status[k] += v
             bop_rows += [bop_row(frame.scene_id, frame.im_id, d.obj_id, d.score, d.R, d.t, frame_time) for d in final]
         num_frames = len(idx)
     return _finish(gt_rows, counts, times, table, cfg, keys, icp, str(label_path), num_frames, bop_rows, out_dir,
-                   device)
+                   device, icp_status if icp else None)
 
 
-def _finish(gt_rows, counts, times, table, cfg, keys, icp, label_file, num_frames, bop_rows, out_dir, device) -> dict:
+def _finish(gt_rows, counts, times, table, cfg, keys, icp, label_file, num_frames, bop_rows, out_dir, device,
+            icp_status=None) -> dict:
     """Aggregate per-instance rows into the summary, write the report files and return the summary."""
     objs, curves = [], {}
     for m, oid in enumerate(table.ids.tolist()):
@@ -224,7 +230,7 @@ def _finish(gt_rows, counts, times, table, cfg, keys, icp, label_file, num_frame
     summary = {"label_file": label_file, "num_frames": num_frames, "icp": icp, "config": asdict(cfg),
                "objects": objs, "mean": mean, "f1": f1, "timing_ms": timing_ms,
                "fps": 1000.0 / timing_ms["total"] if timing_ms["total"] > 0 else float("inf"),
-               "device": device, "bop_csv": BOP_CSV, "instances": gt_rows,
+               "device": device, "bop_csv": BOP_CSV, "icp_refinement": icp_status, "instances": gt_rows,
                "curve": {name: {"k": ks.tolist(), "accuracy": acc.tolist()} for name, (ks, acc) in curves.items()}}
     write_report(Path(out_dir), summary, curves, bop_rows)
     return summary

@@ -5,7 +5,9 @@ points = point + offsets; per class, the predicted box centres vote on a voxel g
 occupied cells form instances (so several instances of one object are found); a robust aggregate of
 the instance's votes is fitted to the model's 9 control points with a confidence-weighted,
 reflection-safe Kabsch; non-maximum suppression by confidence; optional point-to-plane ICP (open3d)
-between the instance's scene points and the model points.
+between the instance's scene points and the model points, kept only when it improves the trimmed
+point-to-plane fit (:func:`fit_rms`) over the same scene points, so ICP never makes a pose worse by its
+own measure.
 
 Pure numpy (open3d only inside :func:`icp_refine`); metres; poses map model points into the camera frame
 (``x_cam = R @ x_model + t``).
@@ -14,7 +16,7 @@ Pure numpy (open3d only inside :func:`icp_refine`); metres; poses map model poin
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 import scipy.sparse
@@ -34,7 +36,11 @@ class PoseConfig:
     icp: refine with ICP; icp_distance: ICP correspondence distance as a fraction of the diameter;
     icp_kernel: Tukey robust-loss scale as a fraction of the diameter (0 = plain least squares);
     icp_iterations: ICP iteration limit; icp_min_points: fewest scene points to run ICP;
-    propagate: metres, a frame point belongs to its nearest predicted point within this distance (ICP points).
+    icp_trim: share of the scene points (the best-fitting ones) whose point-to-plane RMS decides whether
+    the ICP pose is kept (see :func:`fit_rms`); icp_gate: a scene point farther than this fraction of the
+    diameter from every model point counts as an outlier at that distance;
+    propagate: metres, a frame point belongs to a detection when its ``owner_votes`` nearest predicted points
+    within this distance are all that detection's members (ICP points).
     """
 
     tau: float = 0.8
@@ -47,7 +53,10 @@ class PoseConfig:
     icp_kernel: float = 0.0
     icp_iterations: int = 30
     icp_min_points: int = 30
+    icp_trim: float = 0.7
+    icp_gate: float = 0.05
     propagate: float = 0.01
+    owner_votes: int = 3
 
 
 @dataclass
@@ -57,7 +66,9 @@ class Detection:
     obj_id: object id; score: mean confidence of its votes x share of kept votes in [0, 1];
     R: (3,3) float64; t: (3,) float64 metres (model -> camera); support: number of votes;
     control_points: (9,3) float64 metres, the aggregated predicted control points (camera frame);
-    members: (S,) int64 rows of the prediction arrays that voted for it; refined: ICP was applied.
+    members: (S,) int64 rows of the prediction arrays that voted for it; refined: the ICP pose was kept;
+    icp: what ICP did - "" (not run), "accepted", "rejected" (it did not improve the fit: pose unchanged),
+    "skipped" (too few scene points); fit_rms: (before, after) trimmed point-to-plane RMS, metres, when run.
     """
 
     obj_id: int
@@ -68,6 +79,8 @@ class Detection:
     control_points: np.ndarray
     members: np.ndarray = field(repr=False)
     refined: bool = False
+    icp: str = ""
+    fit_rms: tuple[float, float] | None = None
 
     @property
     def pose(self) -> np.ndarray:
@@ -197,6 +210,34 @@ def icp_refine(scene_points: np.ndarray, model_points: np.ndarray, R: np.ndarray
     return T[:3, :3], T[:3, 3]
 
 
+def fit_residuals(scene_points: np.ndarray, model_tree, model_normals: np.ndarray, R: np.ndarray, t: np.ndarray,
+                  gate: float) -> np.ndarray:
+    """Point-to-plane distance of each scene point to the model surface under the pose (R, t).
+
+    scene_points: (S,3) camera frame, metres; model_tree: a scipy cKDTree of the model points (P,3) model frame;
+    model_normals: (P,3) unit normals; R (3,3), t (3,) T_cam_model; gate: metres, a point whose nearest model
+    point is farther gets ``gate``. Returns (S,) float64 metres, each at most ``gate``.
+    """
+    x = (np.asarray(scene_points, np.float64) - t) @ np.asarray(R, np.float64)  # model frame
+    d, j = model_tree.query(x, k=1, distance_upper_bound=gate)
+    found = np.isfinite(d)
+    r = np.full(len(x), gate)
+    jj = j[found]
+    r[found] = np.minimum(np.abs(np.einsum("ij,ij->i", x[found] - model_tree.data[jj], model_normals[jj])), gate)
+    return r
+
+
+def fit_rms(residuals: np.ndarray, trim: float) -> float:
+    """Least-trimmed RMS: the RMS of the smallest ``trim`` share (at least 3) of the residuals (S,) metres.
+
+    Robust to up to 1 - trim of the points being wrong (a support plane or a neighbour that slipped into the
+    segment): a pose that such points drag away fits the object's own points worse, and this says so.
+    """
+    r = np.sort(np.asarray(residuals, np.float64))
+    k = min(len(r), max(3, int(np.ceil(trim * len(r)))))
+    return float(np.sqrt(np.mean(r[:k] ** 2))) if k else float("inf")
+
+
 @dataclass
 class ObjectInfo:
     """What the pose stage needs of each object, by obj_id.
@@ -225,6 +266,16 @@ class ObjectInfo:
         if obj_id not in self._clouds:
             self._clouds[obj_id] = _model_cloud(self.model_points[obj_id])
         return self._clouds[obj_id]
+
+    def surface(self, obj_id: int):
+        """(cKDTree of the model points, (P,3) their unit normals) of ``obj_id``, cached: the fit measure's model."""
+        key = ("surface", obj_id)
+        if key not in self._clouds:
+            from scipy.spatial import cKDTree
+
+            self._clouds[key] = (cKDTree(np.asarray(self.model_points[obj_id], np.float64)),
+                                 np.asarray(self.cloud(obj_id).normals))
+        return self._clouds[key]
 
 
 def detect(xyz: np.ndarray, obj_ids: np.ndarray, confidence: np.ndarray, control_points: np.ndarray,
@@ -259,17 +310,47 @@ def detect(xyz: np.ndarray, obj_ids: np.ndarray, confidence: np.ndarray, control
     return dets
 
 
-def nearest_owner(xyz: np.ndarray, cloud: np.ndarray, radius: float) -> np.ndarray:
-    """Nearest predicted point of every cloud point (carries the network's segmentation to all points).
+def nearest_owner(xyz: np.ndarray, cloud: np.ndarray, radius: float, k: int = 1) -> np.ndarray:
+    """The ``k`` nearest predicted points of every cloud point (carries the network's segmentation to all points).
 
-    xyz: (K,3) metres, the predicted points; cloud: (M,3) metres; radius: metres, farther cloud points get no
-    owner. Returns (M,) int64 row of ``xyz``, -1 for none.
+    xyz: (K,3) metres, the predicted points; cloud: (M,3) metres; radius: metres, farther predicted points are
+    not neighbours. Returns (M,) int64 row of ``xyz`` (k = 1) or (M,k) rows, -1 for none.
     """
     from scipy.spatial import cKDTree
 
-    dist, owner = cKDTree(np.asarray(xyz, np.float64)).query(np.asarray(cloud, np.float64), k=1,
+    dist, owner = cKDTree(np.asarray(xyz, np.float64)).query(np.asarray(cloud, np.float64), k=k,
                                                             distance_upper_bound=radius)
     return np.where(np.isfinite(dist), owner, -1).astype(np.int64)
+
+
+def owned_points(owners: np.ndarray, members: np.ndarray, num_predicted: int) -> np.ndarray:
+    """Cloud points that belong to a detection: all their neighbours (see :func:`nearest_owner`, -1 = none) are
+    its members, and they have at least one. owners: (M,) or (M,k) int64; members: (S,) rows of the K predicted
+    points. Returns (M,) bool. A point next to background or another detection's points is left out."""
+    owners = owners.reshape(len(owners), -1)
+    is_member = np.zeros(num_predicted + 1, bool)  # the extra last entry is the "no owner" row -1
+    is_member[members] = True
+    none = owners < 0
+    return np.all(is_member[owners] | none, axis=1) & ~np.all(none, axis=1)
+
+
+def refine_pose(scene_points: np.ndarray, obj_id: int, R: np.ndarray, t: np.ndarray, objects: ObjectInfo,
+                cfg: PoseConfig) -> tuple[np.ndarray, np.ndarray, bool, tuple[float, float]]:
+    """ICP from (R, t), kept only when it lowers the trimmed point-to-plane RMS of the same scene points.
+
+    scene_points: (S,3) camera frame, metres; R (3,3), t (3,) the initial T_cam_model. Returns R (3,3), t (3,),
+    accepted (False: the input pose, unchanged) and (RMS before, RMS after) in metres.
+    """
+    dia = objects.diameters[obj_id]
+    R1, t1 = icp_refine(scene_points, objects.model_points[obj_id], R, t, cfg.icp_distance * dia,
+                        cfg.icp_iterations, objects.cloud(obj_id), cfg.icp_kernel * dia if cfg.icp_kernel else None)
+    tree, normals = objects.surface(obj_id)
+    gate = cfg.icp_gate * dia
+    before = fit_rms(fit_residuals(scene_points, tree, normals, R, t, gate), cfg.icp_trim)
+    after = fit_rms(fit_residuals(scene_points, tree, normals, R1, t1, gate), cfg.icp_trim)
+    if after < before:
+        return R1, t1, True, (before, after)
+    return np.asarray(R, np.float64), np.asarray(t, np.float64), False, (before, after)
 
 
 def refine(detections: list[Detection], xyz: np.ndarray, objects: ObjectInfo, cfg: PoseConfig,
@@ -277,27 +358,27 @@ def refine(detections: list[Detection], xyz: np.ndarray, objects: ObjectInfo, cf
     """ICP-refined copies of ``detections`` using each one's scene points (metres).
 
     xyz: (K,3) the predicted points (``members`` index them); cloud: (M,3) the frame's full point cloud or None.
-    With a cloud, a detection's scene points are the cloud points whose nearest predicted point (within
-    ``cfg.propagate``) is one of its members (several times more points than the network's); else ``xyz[members]``.
-    Detections with fewer than ``cfg.icp_min_points`` scene points are returned unchanged. Adds "icp" seconds.
+    With a cloud, a detection's scene points are the cloud points whose ``cfg.owner_votes`` nearest predicted
+    points (within ``cfg.propagate``) are all its members (several times more points than the network's, and
+    none next to points predicted as background or as another detection); else ``xyz[members]``. Each ICP pose
+    is kept only when it fits those points better (:func:`refine_pose`); the detection's ``icp`` says what
+    happened. Detections with fewer than ``cfg.icp_min_points`` scene points are "skipped". Adds "icp" seconds.
     """
     t0 = time.perf_counter()
-    owner = nearest_owner(xyz, cloud, cfg.propagate) if cloud is not None and detections else None
+    owners = nearest_owner(xyz, cloud, cfg.propagate, cfg.owner_votes) if cloud is not None and detections else None
     out = []
     for d in detections:
-        if owner is not None:
-            member = np.zeros(len(xyz) + 1, bool)  # the extra last entry is the "no owner" row -1
-            member[d.members] = True
-            pts = np.asarray(cloud)[member[owner]]
-        else:
-            pts = xyz[d.members]
+        pts = np.asarray(cloud)[owned_points(owners, d.members, len(xyz))] if owners is not None else xyz[d.members]
         if len(pts) < cfg.icp_min_points:
-            out.append(d)
+            out.append(replace(d, icp="skipped"))
             continue
-        dia = objects.diameters[d.obj_id]
-        R, t = icp_refine(pts, objects.model_points[d.obj_id], d.R, d.t, cfg.icp_distance * dia, cfg.icp_iterations,
-                          objects.cloud(d.obj_id), cfg.icp_kernel * dia if cfg.icp_kernel else None)
-        out.append(Detection(d.obj_id, d.score, R, t, d.support, d.control_points, d.members, refined=True))
+        R, t, ok, rms = refine_pose(pts, d.obj_id, d.R, d.t, objects, cfg)
+        out.append(replace(d, R=R, t=t, refined=ok, icp="accepted" if ok else "rejected", fit_rms=rms))
     if timings is not None:
         timings["icp"] = timings.get("icp", 0.0) + time.perf_counter() - t0
     return out
+
+
+def icp_counts(detections: list[Detection]) -> dict[str, int]:
+    """How many ``detections`` had their ICP pose accepted, rejected or skipped: {"accepted", "rejected", "skipped"}."""
+    return {k: sum(d.icp == k for d in detections) for k in ("accepted", "rejected", "skipped")}

@@ -218,9 +218,10 @@ def draw_detections(image: np.ndarray, K: np.ndarray, detections: list[Detection
 
 
 def detection_json(d: Detection, name: str) -> dict:
-    """One detection for poses.json: R (3,3), t (3,) metres, T_cam_model (4,4), score, support, refined."""
+    """One detection for poses.json: R (3,3), t (3,) metres, T_cam_model (4,4), score, support, refined (the ICP
+    pose was kept) and icp ("accepted", "rejected", "skipped"; "" without --icp)."""
     return {"obj_id": int(d.obj_id), "name": name, "score": float(d.score), "R": d.R.tolist(), "t": d.t.tolist(),
-            "T_cam_model": d.pose.tolist(), "support": int(d.support), "refined": bool(d.refined)}
+            "T_cam_model": d.pose.tolist(), "support": int(d.support), "refined": bool(d.refined), "icp": d.icp}
 
 
 def predict(predictor, inp: PointInput, objects: ObjectInfo, out_dir: Path, cfg: PoseConfig | None = None,

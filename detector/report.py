@@ -83,8 +83,14 @@ def markdown(summary: dict) -> str:
                      f" | {_pct(f['f1'])} |")
     f = summary["f1"][key]
     lines += [f"| **all** | {f['num_det']} | {f['num_gt']} | {_pct(f['precision'])} | {_pct(f['recall'])} | "
-              f"**{_pct(f['f1'])}** |", "", f"(poses {'with' if icp else 'without'} ICP)", "",
-              "## Time per frame", "", "| stage | ms |", "|---|---:|"]
+              f"**{_pct(f['f1'])}** |", "", f"(poses {'with' if icp else 'without'} ICP)", ""]
+    r = summary.get("icp_refinement")
+    if r:
+        n = sum(r.values())
+        lines += [f"ICP refinement: {r['accepted']} of {n} detections took the ICP pose; {r['rejected']} kept their "
+                  f"unrefined pose because ICP did not improve the trimmed point-to-plane fit; {r['skipped']} had too "
+                  "few points for ICP.", ""]
+    lines += ["## Time per frame", "", "| stage | ms |", "|---|---:|"]
     for s in STAGES:
         if s in summary["timing_ms"]:
             lines.append(f"| {s} | {summary['timing_ms'][s]:.1f} |")

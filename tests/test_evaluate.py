@@ -81,8 +81,13 @@ def test_oracle_with_icp_and_subsampling(label_file, tmp_path):
                  cfg=PoseConfig(tau=0.5))
     for o in s["objects"]:
         assert o["add"]["icp"]["0.10"] == 1.0 and o["add"]["noicp"]["0.10"] == 1.0
+    # exact poses stay exact: ICP never moves one by 1 mm or more (it is refused unless it fits better)
+    assert max(r["icp"] for r in s["instances"]) < 1e-3
+    r = s["icp_refinement"]
+    assert sum(r.values()) == sum(o["f1"]["icp"]["num_det"] for o in s["objects"]) > 0
     assert {"voting", "kabsch", "icp", "total"} <= set(s["timing_ms"])
-    assert "with ICP" in (tmp_path / "report.md").read_text()
+    md = (tmp_path / "report.md").read_text()
+    assert "with ICP" in md and f"ICP refinement: {r['accepted']} of {sum(r.values())} detections" in md
     assert s["fps"] > 0
 
 
