@@ -1,4 +1,7 @@
-"""Inference time per frame, per stage (sampling, network, voting, Kabsch, ICP), on CPU or GPU.
+"""Inference time per frame, per stage (sampling, network, voting, Kabsch, stage 2, ICP), on CPU or GPU.
+
+A two-stage checkpoint (``--checkpoint checkpoints/lm8.pt``) is timed end to end on its own predictions: the
+median per stage and the median of whole frames (ICP included) over ``--frames`` frames after a warm-up.
 
 Usage: .venv/bin/python bench/bench_infer.py [--data FILE.h5] [--checkpoint CKPT] [--preset cpu paper]
                                              [--frames 5] [--device cpu|cuda] [--threads N]
@@ -71,6 +74,31 @@ def pose_times(frames: list, objects, num_points: int) -> dict[str, float]:
     return out
 
 
+def two_stage_times(ck, frames: list, device: str) -> dict[str, float]:
+    """A two-stage checkpoint end to end on real predictions: median seconds per stage and of the whole frame
+    (sampling, network, voting, stage 2, ICP with the model's own pose settings), and detections per frame."""
+    from detector.evaluate import estimate, network_predictor
+    from detector.predict import checkpoint_objects, checkpoint_pose_config, checkpoint_poser
+
+    objects = checkpoint_objects(ck)[0]
+    cfg = checkpoint_pose_config(ck, None, 0.02, True)
+    pred, poser = network_predictor(ck, seed=0, device=device), checkpoint_poser(ck, objects, device)
+    runs, dets = [], []
+    for k, f in enumerate([frames[0], *frames]):  # the first is a warm-up
+        t0 = time.perf_counter()
+        p = pred(f)
+        t = dict(p.timings)
+        d, r = estimate(p, objects, cfg, t, f.features[:, :3], poser, f.features)
+        t["total"] = time.perf_counter() - t0
+        if k:
+            runs.append(t)
+            dets.append(len(r))
+    out = {s: statistics.median(r.get(s, 0.0) for r in runs)
+           for s in ("sampling", "network", "voting", "kabsch", "stage2", "icp", "total")}
+    out["detections"] = statistics.mean(dets)
+    return out
+
+
 def random_checkpoint(preset: str, objects_dict: dict, device: str):
     """A Checkpoint of a randomly initialised network of ``preset`` (its train preset's point count)."""
     import torch
@@ -117,6 +145,15 @@ def main() -> None:
         ckpts = [("checkpoint", load_checkpoint(args.checkpoint, args.device))] if args.checkpoint else \
             [(p, random_checkpoint(p, objects_dict, args.device)) for p in args.preset]
         for name, ck in ckpts:
+            if ck.pose_net is not None:  # a two-stage model: its whole pipeline on its own predictions
+                t = two_stage_times(ck, frames, args.device)
+                ms = {k: round(1000 * v, 1) for k, v in t.items() if k != "detections"}
+                res = {"model": f"{name} (two-stage)", "device": args.device, "threads": torch.get_num_threads(),
+                       "frame_points": int(statistics.mean(len(f.features) for f in frames)),
+                       "detections_per_frame": t["detections"], "ms": ms, "fps": round(1000 / ms["total"], 2)}
+                results.append(res)
+                print(json.dumps(res), flush=True)
+                continue
             net = network_times(ck, frames, args.device)
             pose = pose_times(frames, objects, ck.num_points)
             ms = {k: 1000 * v for k, v in {**net, **{k: pose[k] for k in ("voting", "kabsch", "icp")}}.items()}

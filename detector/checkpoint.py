@@ -3,6 +3,11 @@ normalisation) and, for ``--resume``, the whole training state. Written atomical
 
 A checkpoint is a ``torch.save`` dict of plain values and tensors only, read back with
 ``torch.load(weights_only=True)``: no pickled code runs when a file is loaded.
+
+Version 1 holds one network (the paper's single-shot PoseNet). Version 2 holds the stages of a two-stage model:
+``detect`` (the PoseNet that finds objects and their centres, the version-1 keys) and ``pose`` (the crop network,
+:func:`detector.train_pose.pose_payload`), plus ``extra`` with the inference settings chosen at training time
+(``pose_config``: e.g. the score threshold). A stage-2 run's own ``last.pt`` is version 2 with ``pose`` only.
 """
 
 from __future__ import annotations
@@ -14,10 +19,12 @@ from typing import Any
 
 import torch
 
+from detector.cropnet import build_pose_net
 from detector.errors import DetectorError
 
 FORMAT = "detector-checkpoint"
 VERSION = 1
+VERSIONS = (1, 2)  # 2: a two-stage model (or a stage-2 run)
 
 
 @dataclass
@@ -28,7 +35,9 @@ class Checkpoint:
     objects: the label file's object table as plain lists (ids, names, diameters metres, symmetric,
     control_points (M, 9, 3) metres, model_points (M, P, 3) metres, sym_transforms per object (S, 4, 4));
     num_points: points sampled per frame; step: training steps done; extra: train config, metrics;
-    normalisation: the input colour normalisation (see ``detector.data.NORMALISATION``).
+    normalisation: the input colour normalisation (see ``detector.data.NORMALISATION``);
+    pose_net: a two-stage model's crop network (stage 2) or None; pose: its part of the file (configs, classes)
+    without the weights; pose_config: inference settings stored with the model ({} for none).
     """
 
     model: Any
@@ -39,6 +48,9 @@ class Checkpoint:
     step: int
     extra: dict
     normalisation: dict = field(default_factory=dict)
+    pose_net: Any = None
+    pose: dict | None = None
+    pose_config: dict = field(default_factory=dict)
 
 
 def atomic_torch_save(obj: Any, path: Path) -> None:
@@ -86,9 +98,9 @@ def read_checkpoint(path: str | Path, device: str | torch.device = "cpu") -> dic
         raise DetectorError(f"{path} is not a readable detector checkpoint ({first})") from None
     if not isinstance(payload, dict) or payload.get("format") != FORMAT:
         raise DetectorError(f"{path} is not a detector checkpoint")
-    if payload.get("version") != VERSION:
+    if payload.get("version") not in VERSIONS:
         raise DetectorError(f"{path}: checkpoint version {payload.get('version')} is not supported "
-                            f"(this detector reads version {VERSION})")
+                            f"(this detector reads versions {', '.join(map(str, VERSIONS))})")
     return payload
 
 
@@ -107,11 +119,34 @@ def build_model(payload: dict, path: Path, device: str | torch.device):
 
 
 def load_checkpoint(path: str | Path, device: str | torch.device = "cpu") -> Checkpoint:
-    """Load a checkpoint for inference: the model in eval mode on ``device`` plus its metadata."""
+    """Load a checkpoint for inference: the model (both stages of a two-stage one) in eval mode on ``device``
+    plus its metadata."""
     path = Path(path)
     payload = read_checkpoint(path, "cpu")
+    pose_net, pose = None, None
+    if payload["version"] == 2:
+        if "detect" not in payload:
+            raise DetectorError(f"{path} holds a stage-2 network only; use the two-stage model file (model.pt) "
+                                "that `detector train` writes")
+        pose = {k: v for k, v in payload["pose"].items() if k not in ("model_state", "train_state")}
+        pose_net = build_pose_net(payload["pose"], str(path), device).eval()
+        extra_top = payload.get("extra") or {}
+        payload = payload["detect"]
+    else:
+        extra_top = {}
     model, cfg = build_model(payload, path, device)
     model.eval()
     return Checkpoint(model=model, model_config=cfg, class_ids=list(payload["class_ids"]),
                       objects=payload["objects"], num_points=int(payload["num_points"]), step=int(payload["step"]),
-                      extra=payload.get("extra") or {}, normalisation=payload.get("normalisation") or {})
+                      extra=payload.get("extra") or {}, normalisation=payload.get("normalisation") or {},
+                      pose_net=pose_net, pose=pose, pose_config=dict(extra_top.get("pose_config") or {}))
+
+
+def save_two_stage(path: str | Path, detect: dict, pose: dict, extra: dict | None = None) -> Path:
+    """Write a two-stage model file (version 2) from a stage-1 checkpoint dict and a stage-2 part, without their
+    training states (what inference needs only). extra: e.g. {"pose_config": {...}, "timing": ...}."""
+    d = {k: v for k, v in detect.items() if k not in ("format", "version", "train_state")}
+    p = {k: v for k, v in pose.items() if k != "train_state"}
+    path = Path(path)
+    atomic_torch_save({"format": FORMAT, "version": 2, "detect": d, "pose": p, "extra": extra or {}}, path)
+    return path

@@ -21,7 +21,10 @@ app = typer.Typer(add_completion=False, no_args_is_help=True, pretty_exceptions_
                   help="detector: a multi-task PointNet++ for 6-DoF pose from depth (train, eval, predict).")
 
 #: Files that mark a folder as a training run (``--overwrite`` removes only such folders).
-RUN_MARKERS = ("config.yaml", "metrics.csv", "last.pt")
+RUN_MARKERS = ("config.yaml", "metrics.csv", "last.pt", "two_stage.yaml")
+
+#: The default --preset: the two-stage detector (detector.two_stage); "cpu" and "paper" are the paper's network.
+TWO_STAGE = "two-stage"
 
 
 @app.callback()
@@ -85,7 +88,9 @@ def train_cmd(
     train_file: Path = typer.Argument(..., help="label file (HDF5) from `argen label`"),
     out: Path = typer.Option(..., "--out", help="run folder: config.yaml, metrics.csv, last.pt, best.pt"),
     val: Optional[Path] = typer.Option(None, "--val", help="validation label file (enables best.pt)"),
-    preset: Optional[str] = typer.Option(None, "--preset", help="paper or cpu (default cpu)"),
+    preset: Optional[str] = typer.Option(None, "--preset",
+                                         help="two-stage (default: finds objects, then their pose in crops), or the "
+                                              "paper's single-shot network: cpu or paper"),
     config: Optional[Path] = typer.Option(None, "--config", help="YAML TrainConfig to start from instead of a preset"),
     steps: Optional[int] = typer.Option(None, "--steps", help="optimiser steps in all"),
     epochs: Optional[float] = typer.Option(None, "--epochs", help="passes over the training frames (instead of --steps)"),
@@ -101,10 +106,26 @@ def train_cmd(
     sets: list[str] = typer.Option([], "--set", help="any config key, e.g. --set loss.w_conf=2 --set model.fp_mlps=..."),
     quiet: bool = typer.Option(False, "--quiet", help="no progress bar"),
 ):
-    """Train the multi-task network on a label file; checkpoints and metrics go to --out."""
+    """Train a detector on a label file; checkpoints and metrics go to --out.
+
+    The default two-stage model writes --out/model.pt (both stages; the file eval and predict take) after
+    training --out/detect (stage 1) and --out/pose (stage 2); set their lengths with --set stage1.steps=N
+    --set stage2.steps=M. --preset cpu or paper trains the paper's single network (--out/last.pt).
+    """
     from detector import distributed
     from detector.train import load_config_file, make_config, train
 
+    if preset is not None:
+        two_stage = preset == TWO_STAGE
+    elif resume:
+        two_stage = (out / "two_stage.yaml").is_file()
+    else:
+        two_stage = config is None  # a --config alone is a TrainConfig of the single network
+    if two_stage:
+        _train_two_stage(train_file, out, config, sets, resume, overwrite, quiet,
+                         {"steps": steps, "epochs": epochs, "batch_size": batch_size, "lr": lr, "device": device,
+                          "seed": seed, "num_workers": workers, "seg_pretrain_steps": seg_pretrain_steps})
+        return
     if steps is not None and epochs is not None:
         raise DetectorError("give --steps or --epochs, not both")
     if resume and overwrite:
@@ -137,6 +158,27 @@ def train_cmd(
         distributed.teardown(ctx)
     if ctx.is_main:
         typer.echo(f"{out}: {summary.line()}" + (f" ({ctx.world_size} processes)" if ctx.enabled else ""))
+
+
+def _train_two_stage(train_file: Path, out: Path, config: Optional[Path], sets: list[str], resume: bool,
+                     overwrite: bool, quiet: bool, flags: dict) -> None:
+    """``detector train`` for the two-stage model (see :mod:`detector.two_stage`)."""
+    from detector.two_stage import load_two_stage_config, train_two_stage
+
+    given = [f"--{k.replace('_', '-')}" for k, v in flags.items() if v is not None]
+    if given:
+        raise DetectorError(f"{given[0]} applies to one network; for the two-stage model use --set stage1.KEY=V or "
+                            "--set stage2.KEY=V (e.g. --set stage2.steps=3000)")
+    if resume and overwrite:
+        raise DetectorError("--resume and --overwrite exclude each other")
+    if resume:
+        if config is not None or sets:
+            raise DetectorError("--resume continues the run's own two_stage.yaml; drop --config/--set")
+        config = out / "two_stage.yaml"
+    cfg = load_two_stage_config(config, parse_set_options(sets))
+    prepare_run_folder(out, resume, overwrite)
+    path = train_two_stage(cfg, train_file, out, resume=resume, progress=not quiet)
+    typer.echo(f"{out}: two-stage model -> {path}")
 
 
 def register_commands() -> None:

@@ -19,8 +19,11 @@ def register(app: typer.Typer) -> None:
         data: Path = typer.Argument(..., help="Label file (HDF5) written by 'argen label'."),
         out: Path = typer.Option(..., "--out", help="Report folder (report.md, report.json, curve.png, BOP CSV)."),
         icp: bool = typer.Option(False, "--icp", help="Also refine with ICP (Table II 'with refinement')."),
-        tau: float = typer.Option(0.8, "--tau", help="Confidence threshold."),
+        tau: Optional[float] = typer.Option(None, "--tau", help="Confidence threshold (default: the model's own, "
+                                                                "else the paper's 0.8)."),
         cell: float = typer.Option(0.02, "--cell", help="Voting voxel size, metres."),
+        min_score: Optional[float] = typer.Option(None, "--min-score",
+                                                  help="Drop detections scoring less (default: the model's own)."),
         min_visib: float = typer.Option(0.1, "--min-visib", help="Ignore instances less visible than this."),
         frames: Optional[int] = typer.Option(None, "--frames", help="Evaluate only the first N frames."),
         device: str = typer.Option("cpu", "--device", help="torch device, e.g. cpu or cuda."),
@@ -31,14 +34,16 @@ def register(app: typer.Typer) -> None:
         from argen.h5 import LabelFile
         from detector.checkpoint import load_checkpoint
         from detector.evaluate import evaluate, network_predictor
-        from detector.predict import pose_config
+        from detector.predict import checkpoint_objects, checkpoint_pose_config, checkpoint_poser
 
-        cfg = pose_config(tau, cell, icp)
         ckpt = load_checkpoint(checkpoint, device)
+        cfg = checkpoint_pose_config(ckpt, tau, cell, icp, min_score)
         with LabelFile(data) as lf:
             n = lf.num_frames
+        poser = checkpoint_poser(ckpt, checkpoint_objects(ckpt)[0], device, seed)
         s = evaluate(network_predictor(ckpt, seed), data, out, icp=icp, cfg=cfg, device=device,
-                     frames=list(range(min(n, frames) if frames else n)), min_visib=min_visib, progress=not quiet)
+                     frames=list(range(min(n, frames) if frames else n)), min_visib=min_visib, progress=not quiet,
+                     poser=poser)
         key = "icp" if icp else "noicp"
         typer.echo(f"ADD@10%: {100 * s['mean'][key]['0.10']:.1f} %  F1@15%: {100 * s['f1'][key]['f1']:.1f} %  "
                    f"{s['fps']:.2f} frames/s  -> {out / 'report.md'}")
@@ -55,21 +60,26 @@ def register(app: typer.Typer) -> None:
                                                     help="Depth PNG value x scale = millimetres (BOP)."),
         rgb: Optional[Path] = typer.Option(None, "--rgb", help="Colour image for a depth PNG."),
         icp: bool = typer.Option(False, "--icp", help="Refine with ICP."),
-        tau: float = typer.Option(0.8, "--tau", help="Confidence threshold."),
+        tau: Optional[float] = typer.Option(None, "--tau", help="Confidence threshold (default: the model's own, "
+                                                                "else the paper's 0.8)."),
         cell: float = typer.Option(0.02, "--cell", help="Voting voxel size, metres."),
+        min_score: Optional[float] = typer.Option(None, "--min-score",
+                                                  help="Drop detections scoring less (default: the model's own)."),
         device: str = typer.Option("cpu", "--device", help="torch device."),
         seed: int = typer.Option(0, "--seed", help="Point sampling seed."),
     ) -> None:
         """Predict the poses in one frame: poses.json (metres) and poses.png (3D boxes)."""
         from detector.checkpoint import load_checkpoint
         from detector.evaluate import network_predictor
-        from detector.predict import checkpoint_objects, load_input, pose_config, predict
+        from detector.predict import (checkpoint_objects, checkpoint_pose_config, checkpoint_poser, load_input,
+                                      predict)
 
-        cfg = pose_config(tau, cell, icp)
         ckpt = load_checkpoint(checkpoint, device)
+        cfg = checkpoint_pose_config(ckpt, tau, cell, icp, min_score)
         inp = load_input(input, K=K, depth_scale=depth_scale, camera=camera, rgb=rgb, seed=seed)
         objects, names = checkpoint_objects(ckpt)
-        res = predict(network_predictor(ckpt, seed), inp, objects, out, cfg, names)
+        res = predict(network_predictor(ckpt, seed), inp, objects, out, cfg, names,
+                      poser=checkpoint_poser(ckpt, objects, device, seed))
         for d in res["detections"]:
             typer.echo(f"{d['name']} (obj {d['obj_id']}): score {d['score']:.2f}, t = "
                        + " ".join(f"{v:.3f}" for v in d["t"]) + " m")

@@ -20,6 +20,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from detector.crops import training_crop
 from detector.errors import DetectorError
 
 #: Colour normalisation of the network input; the label file stores colour in [0, 1].
@@ -149,29 +150,15 @@ def check_frame(frame, path: Path, i: int) -> None:
         raise DetectorError(f"{path}: frame {i} has no points")
 
 
-class PointDataset(torch.utils.data.Dataset):
-    """Per-frame training items from a label file: ``num_points`` sampled points, labels, sampling indices.
+class FrameSource(torch.utils.data.Dataset):
+    """A label file's frames for a Dataset: opened lazily in each process (never pickled into workers), the
+    object table, the classes to learn (``class_ids``, sorted object ids) and the per-item generator."""
 
-    ``dataset[i]`` is frame ``i`` of epoch 0; ``dataset[(epoch, i)]`` draws the sample of another epoch.
-    An item is a dict of tensors: ``features`` (N, 9) float32 (normalised network input), ``cls`` (N,)
-    int64 (0 = background, c = ``class_ids[c - 1]``), ``instance`` (N,) int64 (-1 = background),
-    ``control_points`` (N, 9, 3) float32 metres, the :func:`detector.ops.precompute_indices` arrays and
-    ``frame`` (int). The label file is opened lazily in each process (never pickled into workers).
-    ``precompute=False`` leaves the indices out (the model then computes them on its device).
-    """
-
-    def __init__(self, path: str | Path, model_cfg, num_points: int, augment: bool = False, seed: int = 0,
-                 class_ids: Sequence[int] | None = None, precompute: bool = True):
+    def __init__(self, path: str | Path, seed: int = 0, class_ids: Sequence[int] | None = None,
+                 augment: bool = False):
         self.path = Path(path)
-        self.model_cfg = model_cfg
-        self.specs = list(model_cfg.sampling_specs())
-        self.num_points = int(num_points)
-        self.augment = bool(augment)
         self.seed = int(seed)
-        self.precompute = bool(precompute)
-        if self.specs and self.num_points < self.specs[0][0]:
-            raise DetectorError(f"num_points {self.num_points} is below the first sampling stage's "
-                                f"{self.specs[0][0]} keypoints")
+        self.augment = bool(augment)
         self._file = None
         self._pid = None
         lf = open_label_file(self.path)
@@ -213,7 +200,8 @@ class PointDataset(torch.utils.data.Dataset):
         """The generator of one item, from (seed, epoch, frame index)."""
         return np.random.default_rng([self.seed, int(epoch), int(index)])
 
-    def __getitem__(self, key: int | tuple[int, int]) -> dict[str, torch.Tensor]:
+    def read(self, key: int | tuple[int, int]):
+        """(frame labels, generator, frame index) of item ``key`` = index or (epoch, index); checked."""
         epoch, index = key if isinstance(key, tuple) else (0, key)
         index = int(index)
         if not 0 <= index < self.num_frames:
@@ -221,7 +209,33 @@ class PointDataset(torch.utils.data.Dataset):
         with label_file_errors():
             frame = self._label_file().frame(index)
         check_frame(frame, self.path, index)
-        rng = self.rng(epoch, index)
+        return frame, self.rng(epoch, index), index
+
+
+class PointDataset(FrameSource):
+    """Per-frame training items from a label file: ``num_points`` sampled points, labels, sampling indices.
+
+    ``dataset[i]`` is frame ``i`` of epoch 0; ``dataset[(epoch, i)]`` draws the sample of another epoch.
+    An item is a dict of tensors: ``features`` (N, 9) float32 (normalised network input), ``cls`` (N,)
+    int64 (0 = background, c = ``class_ids[c - 1]``), ``instance`` (N,) int64 (-1 = background),
+    ``control_points`` (N, 9, 3) float32 metres, the :func:`detector.ops.precompute_indices` arrays and
+    ``frame`` (int). The label file is opened lazily in each process (never pickled into workers).
+    ``precompute=False`` leaves the indices out (the model then computes them on its device).
+    """
+
+    def __init__(self, path: str | Path, model_cfg, num_points: int, augment: bool = False, seed: int = 0,
+                 class_ids: Sequence[int] | None = None, precompute: bool = True):
+        self.model_cfg = model_cfg
+        self.specs = list(model_cfg.sampling_specs())
+        self.num_points = int(num_points)
+        self.precompute = bool(precompute)
+        if self.specs and self.num_points < self.specs[0][0]:
+            raise DetectorError(f"num_points {self.num_points} is below the first sampling stage's "
+                                f"{self.specs[0][0]} keypoints")
+        super().__init__(path, seed, class_ids, augment)
+
+    def __getitem__(self, key: int | tuple[int, int]) -> dict[str, torch.Tensor]:
+        frame, rng, index = self.read(key)
         rows = sample_rows(len(frame.features), self.num_points, rng)
         feats = np.asarray(frame.features, dtype=np.float32)[rows]
         cps = np.asarray(frame.control_points, dtype=np.float32)[rows]
@@ -326,3 +340,56 @@ def inference_batch(features: np.ndarray, model_cfg, num_points: int, seed: int 
     batch["features"] = torch.from_numpy(normalise_features(sel, normalisation))[None]
     batch["point_index"] = torch.from_numpy(rows)
     return batch
+
+
+# ------------------------------------------------------------------------------------------------- stage 2
+
+
+class CropDataset(FrameSource):
+    """Stage-2 training items: every usable instance of a frame as an object-centred crop (:mod:`detector.crops`).
+
+    ``dataset[(epoch, i)]`` is frame ``i``'s crops: ``features`` (c, n, 9), ``cls`` (c,) int64 class index
+    (``class_ids[cls]`` is the object id), ``fg`` (c, n) float32, ``coords`` (c, S, n, 3) float32 model coordinates
+    in diameters under each of the S symmetries (padded to the most any object has), ``sym_mask`` (c, S) bool and
+    ``frame`` (c,) int64. An instance is used when its object is in ``class_ids``, its visible fraction and point
+    count reach the crop config's minimums and its crop holds enough points; c may be 0.
+    Items are pure functions of (seed, epoch, frame). Batches join items with :func:`collate_crops`.
+    """
+
+    def __init__(self, path: str | Path, crop_cfg, augment: bool = False, seed: int = 0,
+                 class_ids: Sequence[int] | None = None):
+        super().__init__(path, seed, class_ids, augment)
+        self.crop_cfg = crop_cfg
+        ids = self.objects["ids"]
+        self.sym = {int(i): np.asarray(s, np.float32) for i, s in zip(ids, self.objects["sym_transforms"])}
+        self.diameters = {int(i): float(d) for i, d in zip(ids, self.objects["diameters"])}
+        self.max_sym = max(len(self.sym[c]) for c in self.class_ids)
+
+    def __getitem__(self, key: int | tuple[int, int]) -> dict[str, torch.Tensor]:
+        frame, rng, index = self.read(key)
+        cfg, n, S = self.crop_cfg, self.crop_cfg.num_points, self.max_sym
+        inst = frame.instances
+        crops = []
+        for g in range(len(inst)):
+            oid = int(inst.obj_id[g])
+            if oid not in self.sym or inst.visib_fract[g] < cfg.min_visib or inst.num_points[g] < cfg.min_object_points:
+                continue
+            c = training_crop(frame, g, self.diameters[oid], self.sym[oid], cfg, rng, NORMALISATION, self.augment)
+            if c is not None:
+                crops.append((self.class_ids.index(oid), c))
+        feats = np.zeros((len(crops), n, 9), np.float32)
+        fg = np.zeros((len(crops), n), np.float32)
+        coords = np.zeros((len(crops), S, n, 3), np.float32)
+        mask = np.zeros((len(crops), S), bool)
+        for k, (_, c) in enumerate(crops):
+            feats[k], fg[k] = c["features"], c["fg"]
+            s = len(c["coords"])
+            coords[k, :s], mask[k, :s] = c["coords"], True
+        return {"features": torch.from_numpy(feats), "cls": torch.tensor([c for c, _ in crops], dtype=torch.int64),
+                "fg": torch.from_numpy(fg), "coords": torch.from_numpy(coords), "sym_mask": torch.from_numpy(mask),
+                "frame": torch.full((len(crops),), index, dtype=torch.int64)}
+
+
+def collate_crops(items: Sequence[dict[str, torch.Tensor]]) -> dict[str, torch.Tensor]:
+    """Join crop items (see :class:`CropDataset`) along their first dimension."""
+    return {k: torch.cat([it[k] for it in items]) for k in items[0]}

@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 
 from detector.metrics import THRESHOLDS, accuracy, accuracy_curve, match_frame, pose_error, prf
-from detector.pose import Detection, ObjectInfo, PoseConfig, detect, icp_counts, refine
+from detector.pose import Detection, ObjectInfo, PoseConfig, detect, icp_counts, nms, refine
 from detector.report import STAGES, bop_row, write_report
 
 BOP_CSV = "results_bop.csv"
@@ -104,13 +104,19 @@ def network_predictor(checkpoint, seed: int = 0, device: str | None = None) -> P
 
 
 def estimate(preds: Predictions, objects: ObjectInfo, cfg: PoseConfig, timings: dict | None = None,
-             cloud: np.ndarray | None = None) -> tuple[list[Detection], list[Detection] | None]:
+             cloud: np.ndarray | None = None, poser=None, features: np.ndarray | None = None
+             ) -> tuple[list[Detection], list[Detection] | None]:
     """Detections of one frame without and (when ``cfg.icp``) with ICP refinement; stage seconds into ``timings``.
 
     cloud: (M,3) metres, the frame's full point cloud, for ICP (see :func:`detector.pose.refine`); None: the
-    predicted points only.
+    predicted points only. poser: a two-stage model's stage 2 (:class:`detector.infer.CropPoser`), called with
+    the stage-1 detections and ``features`` (M,9), the frame's points whose xyz is ``cloud``; its detections are
+    suppressed again (two crops may settle on one object) and ``cfg.min_score`` drops the weak ones.
     """
     dets = detect(preds.xyz, preds.obj_ids, preds.confidence, preds.control_points, objects, cfg, timings)
+    if poser is not None:
+        dets = nms(poser(dets, features, timings), objects.diameters, cfg.nms_fraction)
+    dets = [d for d in dets if d.score >= cfg.min_score]
     return dets, (refine(dets, preds.xyz, objects, cfg, timings, cloud) if cfg.icp else None)
 
 
@@ -133,10 +139,11 @@ def _summary_for(rows: list[dict], key: str, k_list=THRESHOLDS) -> dict:
 
 def evaluate(predictor: Predictor, label_path: str | Path, out_dir: str | Path, icp: bool = False,
              cfg: PoseConfig | None = None, frames: list[int] | None = None, min_visib: float = 0.1,
-             device: str = "cpu", progress: bool = False) -> dict:
+             device: str = "cpu", progress: bool = False, poser=None) -> dict:
     """Evaluate ``predictor`` on a label file and write the report into ``out_dir``.
 
-    Ground-truth instances with ``visib_fract < min_visib`` are ignored (neither missed nor matched).
+    Ground-truth instances with ``visib_fract < min_visib`` are ignored (neither missed nor matched). poser: a
+    two-stage model's stage 2 (see :func:`estimate`).
     Returns the summary written to report.json (per-object ADD accuracies at 10/15/30 % without and with ICP,
     F1 at 15 %, mean ms per stage, fps, and with ICP how many detections had their ICP pose accepted, rejected
     (it did not fit better, so the unrefined pose was kept) or skipped (too few points): "icp_refinement").
@@ -160,7 +167,8 @@ def evaluate(predictor: Predictor, label_path: str | Path, out_dir: str | Path, 
             t0 = time.perf_counter()
             preds = predictor(frame)
             timings = dict(preds.timings)
-            res = dict(zip(("noicp", "icp"), estimate(preds, objects, cfg, timings, frame.features[:, :3])))
+            res = dict(zip(("noicp", "icp"), estimate(preds, objects, cfg, timings, frame.features[:, :3], poser,
+                                                      frame.features)))
             frame_time = time.perf_counter() - t0
             timings["total"] = frame_time
             times.append(timings)

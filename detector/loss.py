@@ -10,7 +10,9 @@ confidence target is computed without gradient from d3D, the mean distance (metr
 predicted and true control points: ``linear`` is ``clip(1 - d3D / d_th, 0, 1)`` (the score the paper
 uses), ``exp`` the paper's Eq. score normalised to [0, 1]: ``(exp(alpha (1 - d3D / d_th)) - 1) /
 (exp(alpha) - 1)`` for d3D < d_th, else 0 (d_th = 0.06 m, alpha = 2). ``seg_only`` trains the class
-head alone (the paper's segmentation pre-training); the other parts are still reported.
+head alone (the paper's segmentation pre-training); the other parts are still reported. ``centre_only``
+regresses only control point 8 (the box centre) and scores confidence on its distance: the loss of a two-stage
+model's stage 1, which only has to find objects and their centres.
 """
 
 from __future__ import annotations
@@ -37,6 +39,7 @@ class LossConfig:
     seg_only: bool = False
     offset_unit: float = 0.1  # metres per unit of the SmoothL1 argument
     beta: float = 0.1  # SmoothL1 beta, in offset units
+    centre_only: bool = False  # regress (and score confidence on) the box centre only: a two-stage model's stage 1
 
     def __post_init__(self) -> None:
         if self.score not in ("linear", "exp"):
@@ -78,11 +81,14 @@ def multitask_loss(out: dict, target: dict, cfg: LossConfig, pos_count: torch.Te
     pos = (cls > 0).to(logits.dtype)
     n_pos = pos.sum().clamp(min=1.0) if pos_count is None else torch.as_tensor(pos_count, dtype=logits.dtype)
     true_offsets = target["control_points"].to(out["offsets"].dtype) - out["xyz"][:, :, None].detach()
-    sl1 = F.smooth_l1_loss(out["offsets"] / cfg.offset_unit, true_offsets / cfg.offset_unit,
+    pred_offsets = out["offsets"]
+    if cfg.centre_only:  # control point 8 is the centre
+        pred_offsets, true_offsets = pred_offsets[:, :, 8:9], true_offsets[:, :, 8:9]
+    sl1 = F.smooth_l1_loss(pred_offsets / cfg.offset_unit, true_offsets / cfg.offset_unit,
                            reduction="none", beta=cfg.beta).mean(dim=(-1, -2))  # (B, K)
     offset = (sl1 * pos).sum() / n_pos
     with torch.no_grad():
-        d3d = mean_control_point_distance(out["offsets"], true_offsets)
+        d3d = mean_control_point_distance(pred_offsets, true_offsets)
         conf_target = confidence_target(d3d, cfg.d_th, cfg.score, cfg.alpha)
     conf = (((out["confidence"] - conf_target) ** 2) * pos).sum() / n_pos
     if cfg.seg_only:

@@ -40,7 +40,10 @@ class PoseConfig:
     the ICP pose is kept (see :func:`fit_rms`); icp_gate: a scene point farther than this fraction of the
     diameter from every model point counts as an outlier at that distance;
     propagate: metres, a frame point belongs to a detection when its ``owner_votes`` nearest predicted points
-    within this distance are all that detection's members (ICP points).
+    within this distance are all that detection's members (ICP points);
+    centre_votes: instances from the box-centre votes alone (a two-stage model's stage 1, whose corners are
+    not trained): the detection's centre is their robust mean and its orientation is left to stage 2;
+    min_score: detections scoring less are dropped (after stage 2, before ICP).
     """
 
     tau: float = 0.8
@@ -57,6 +60,8 @@ class PoseConfig:
     icp_gate: float = 0.05
     propagate: float = 0.01
     owner_votes: int = 3
+    centre_votes: bool = False
+    min_score: float = 0.0
 
 
 @dataclass
@@ -68,7 +73,9 @@ class Detection:
     control_points: (9,3) float64 metres, the aggregated predicted control points (camera frame);
     members: (S,) int64 rows of the prediction arrays that voted for it; refined: the ICP pose was kept;
     icp: what ICP did - "" (not run), "accepted", "rejected" (it did not improve the fit: pose unchanged),
-    "skipped" (too few scene points); fit_rms: (before, after) trimmed point-to-plane RMS, metres, when run.
+    "skipped" (too few scene points); fit_rms: (before, after) trimmed point-to-plane RMS, metres, when run;
+    points: (P,) int64 rows of the frame cloud that are this instance's (a two-stage model's crop foreground),
+    or None (ICP then carries ``members`` to the cloud).
     """
 
     obj_id: int
@@ -81,6 +88,7 @@ class Detection:
     refined: bool = False
     icp: str = ""
     fit_rms: tuple[float, float] | None = None
+    points: np.ndarray | None = field(default=None, repr=False)
 
     @property
     def pose(self) -> np.ndarray:
@@ -160,6 +168,57 @@ def kabsch(src: np.ndarray, dst: np.ndarray, weights: np.ndarray | None = None) 
     d = np.sign(np.linalg.det(Vt.T @ U.T)) or 1.0
     R = Vt.T @ np.diag([1.0, 1.0, d]) @ U.T
     return R, cd - R @ cs
+
+
+def kabsch_batch(src: np.ndarray, dst: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Unweighted Kabsch for H point sets at once: ``dst[h] ~ R[h] @ src[h] + t[h]``, never a reflection.
+
+    src, dst: (H,m,3) metres. Returns R (H,3,3), t (H,3) float64.
+    """
+    src, dst = np.asarray(src, np.float64), np.asarray(dst, np.float64)
+    cs, cd = src.mean(1), dst.mean(1)
+    M = np.einsum("hmi,hmj->hij", src - cs[:, None], dst - cd[:, None])
+    U, _, Vt = np.linalg.svd(M)
+    d = np.sign(np.linalg.det(np.einsum("hji,hkj->hik", Vt, U)))
+    d[d == 0] = 1.0
+    D = np.zeros((len(src), 3, 3))
+    D[:, 0, 0] = D[:, 1, 1] = 1.0
+    D[:, 2, 2] = d
+    R = np.einsum("hji,hjk,hlk->hil", Vt, D, U)
+    return R, cd - np.einsum("hij,hj->hi", R, cs)
+
+
+def ransac_kabsch(model_pts: np.ndarray, scene_pts: np.ndarray, weights: np.ndarray, threshold: float,
+                  rng: np.random.Generator, hypotheses: int = 128, refits: int = 3, keep: int = 1
+                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray] | list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
+    """A pose from noisy 3D-3D correspondences: RANSAC over 3-point Kabsch hypotheses, then weighted refits.
+
+    model_pts: (n,3) model frame, metres (predicted model coordinates); scene_pts: (n,3) camera frame, metres;
+    weights: (n,) >= 0 (foreground probabilities); threshold: metres, a correspondence is an inlier when
+    ``|R m + t - p|`` is under it. The hypothesis with the largest inlier weight wins; it is refitted on its
+    inliers ``refits`` times (weighted Kabsch). Returns R (3,3), t (3,) float64 and the inlier mask (n,) bool;
+    with ``keep`` > 1, a list of the ``keep`` best hypotheses so refitted, best first (for a verification step).
+    Needs n >= 3.
+    """
+    m, p = np.asarray(model_pts, np.float64), np.asarray(scene_pts, np.float64)
+    w = np.asarray(weights, np.float64)
+    n = len(m)
+    idx = np.stack([rng.choice(n, 3, replace=False) for _ in range(hypotheses)]) if n < 64 else \
+        rng.integers(0, n, (hypotheses, 3))
+    Rh, th = kabsch_batch(m[idx], p[idx])
+    res = np.linalg.norm(np.einsum("hij,nj->hni", Rh, m) + th[:, None] - p, axis=2)  # (H, n)
+    score = ((res < threshold) * w).sum(1)
+    out = []
+    for best in np.argsort(-score, kind="stable")[:max(keep, 1)]:
+        R, t = Rh[best], th[best]
+        inl = res[best] < threshold
+        for _ in range(refits):
+            if inl.sum() < 3:
+                break
+            R, t = kabsch(m[inl], p[inl], w[inl] + 1e-9)
+            inl = np.linalg.norm(m @ R.T + t - p, axis=1) < threshold
+        out.append((R, t, inl))
+    return out if keep > 1 else out[0]
 
 
 def nms(detections: list[Detection], diameters: dict[int, float], fraction: float) -> list[Detection]:
@@ -299,8 +358,16 @@ def detect(xyz: np.ndarray, obj_ids: np.ndarray, confidence: np.ndarray, control
     dets = []
     for oid, members in groups:
         w = np.asarray(confidence, np.float64)[members]
-        cps, inl = robust_control_points(control_points[members], w, objects.diameters[oid], cfg.inlier_fraction)
-        R, t = kabsch(objects.control_points[oid], cps)
+        if cfg.centre_votes:  # the centre only; R is a placeholder (identity) until stage 2 sets it
+            c, inl = robust_control_points(control_points[members, 8:9], w, objects.diameters[oid],
+                                           cfg.inlier_fraction)
+            R = np.eye(3)
+            t = c[0] - objects.control_points[oid][8]
+            cps = objects.control_points[oid] + t
+        else:
+            cps, inl = robust_control_points(control_points[members], w, objects.diameters[oid],
+                                             cfg.inlier_fraction)
+            R, t = kabsch(objects.control_points[oid], cps)
         score = float(w[inl].mean() * inl.mean()) if inl.any() else 0.0
         dets.append(Detection(oid, score, R, t, len(members), cps, members[inl] if inl.any() else members))
     dets = nms(dets, objects.diameters, cfg.nms_fraction)
@@ -358,7 +425,8 @@ def refine(detections: list[Detection], xyz: np.ndarray, objects: ObjectInfo, cf
     """ICP-refined copies of ``detections`` using each one's scene points (metres).
 
     xyz: (K,3) the predicted points (``members`` index them); cloud: (M,3) the frame's full point cloud or None.
-    With a cloud, a detection's scene points are the cloud points whose ``cfg.owner_votes`` nearest predicted
+    A detection that carries ``points`` (rows of ``cloud``) uses those. Otherwise, with a cloud, a detection's
+    scene points are the cloud points whose ``cfg.owner_votes`` nearest predicted
     points (within ``cfg.propagate``) are all its members (several times more points than the network's, and
     none next to points predicted as background or as another detection); else ``xyz[members]``. Each ICP pose
     is kept only when it fits those points better (:func:`refine_pose`); the detection's ``icp`` says what
@@ -368,7 +436,12 @@ def refine(detections: list[Detection], xyz: np.ndarray, objects: ObjectInfo, cf
     owners = nearest_owner(xyz, cloud, cfg.propagate, cfg.owner_votes) if cloud is not None and detections else None
     out = []
     for d in detections:
-        pts = np.asarray(cloud)[owned_points(owners, d.members, len(xyz))] if owners is not None else xyz[d.members]
+        if d.points is not None and cloud is not None:
+            pts = np.asarray(cloud)[d.points]
+        elif owners is not None:
+            pts = np.asarray(cloud)[owned_points(owners, d.members, len(xyz))]
+        else:
+            pts = xyz[d.members]
         if len(pts) < cfg.icp_min_points:
             out.append(replace(d, icp="skipped"))
             continue

@@ -225,9 +225,9 @@ def detection_json(d: Detection, name: str) -> dict:
 
 
 def predict(predictor, inp: PointInput, objects: ObjectInfo, out_dir: Path, cfg: PoseConfig | None = None,
-            names: dict[int, str] | None = None) -> dict:
-    """Run ``predictor`` (see :mod:`detector.evaluate`) and the pose stage on ``inp``; write poses.json and
-    poses.png into ``out_dir``. Returns the JSON content."""
+            names: dict[int, str] | None = None, poser=None) -> dict:
+    """Run ``predictor`` (see :mod:`detector.evaluate`) and the pose stage (with a two-stage model's ``poser``)
+    on ``inp``; write poses.json and poses.png into ``out_dir``. Returns the JSON content."""
     import cv2
 
     from detector.evaluate import estimate
@@ -236,7 +236,7 @@ def predict(predictor, inp: PointInput, objects: ObjectInfo, out_dir: Path, cfg:
     t0 = time.perf_counter()
     preds = predictor(SimpleNamespace(features=inp.features, scene_id=0, im_id=0))
     timings = dict(preds.timings)
-    dets, refined = estimate(preds, objects, cfg, timings, inp.features[:, :3])
+    dets, refined = estimate(preds, objects, cfg, timings, inp.features[:, :3], poser, inp.features)
     final = refined if refined is not None else dets
     timings["total"] = time.perf_counter() - t0
     names = names or {}
@@ -260,10 +260,38 @@ def checkpoint_objects(ckpt) -> tuple[ObjectInfo, dict[int, str]]:
     return ObjectInfo.from_table(o), {int(i): str(n) for i, n in zip(o["ids"], o["names"])}
 
 
-def pose_config(tau: float, cell: float, icp: bool) -> PoseConfig:
-    """A PoseConfig from CLI options, checked (metres)."""
+def pose_config(tau: float, cell: float, icp: bool, base: PoseConfig | None = None) -> PoseConfig:
+    """A PoseConfig from CLI options, checked (metres); ``base`` gives the other settings."""
     if not 0 <= tau <= 1:
         raise DetectorError(f"--tau must be in [0, 1], got {tau}")
     if not 0 < cell < 1:
         raise DetectorError(f"--cell is metres and must be in (0, 1), got {cell}")
-    return replace(PoseConfig(), tau=tau, cell=cell, icp=icp)
+    return replace(base or PoseConfig(), tau=tau, cell=cell, icp=icp)
+
+
+def checkpoint_pose_config(ckpt, tau: float | None, cell: float, icp: bool, min_score: float | None = None
+                           ) -> PoseConfig:
+    """The pose settings of a checkpoint (those stored with a two-stage model, e.g. its thresholds), with the CLI's
+    options over them; ``tau`` / ``min_score`` None keep the model's (the paper's tau 0.8 and no score threshold
+    for a model that stores none)."""
+    try:
+        base = replace(PoseConfig(), **ckpt.pose_config)
+    except TypeError as exc:
+        raise DetectorError(f"the checkpoint's pose settings are not understood ({exc})") from None
+    if min_score is not None:
+        if not 0 <= min_score <= 1:
+            raise DetectorError(f"--min-score must be in [0, 1], got {min_score}")
+        base = replace(base, min_score=min_score)
+    return pose_config(base.tau if tau is None else tau, cell, icp, base)
+
+
+def checkpoint_poser(ckpt, objects: ObjectInfo, device: str = "cpu", seed: int = 0):
+    """A two-stage checkpoint's stage 2 (:class:`detector.infer.CropPoser`), or None for a single network."""
+    if ckpt.pose_net is None:
+        return None
+    from detector.crops import CropConfig
+    from detector.infer import CropPoseConfig, CropPoser
+
+    p = ckpt.pose
+    return CropPoser(ckpt.pose_net, p["class_ids"], objects, CropConfig.from_dict(p["crop_config"]),
+                     p["normalisation"], CropPoseConfig(**(p.get("infer_config") or {})), device, seed)

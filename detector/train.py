@@ -425,6 +425,20 @@ def check_resumable(saved: dict, cfg: TrainConfig, path: Path) -> None:
                                 f"{key}={saved.get(key)!r}")
 
 
+def restore_state(net: torch.nn.Module, opt, sched, model_state: dict, state: dict, cfg, path: Path,
+                  device: torch.device, start: int, total: int) -> None:
+    """Resume: check the run's settings (:func:`check_resumable`), load weights, optimiser, scheduler and RNG state;
+    the learning rate then follows this run's schedule of ``total`` steps from ``start`` (which differs from the
+    saved one when ``steps`` grew)."""
+    check_resumable(state["config"], cfg, path)
+    net.load_state_dict(model_state)
+    opt.load_state_dict(state["optimizer"])
+    sched.load_state_dict(state["scheduler"])
+    set_rng_state(state["rng"], device)
+    for group, base_lr in zip(opt.param_groups, sched.base_lrs):
+        group["lr"] = base_lr * lr_factor(start, total, cfg)
+
+
 def train(cfg: TrainConfig, train_path: str | Path, out_dir: str | Path, val_path: str | Path | None = None,
           resume: bool = False, progress: bool = True, stop_after: int | None = None) -> TrainSummary:
     """Train a PoseNet on a label file; write checkpoints and metrics to ``out_dir``; return a summary.
@@ -480,14 +494,8 @@ def _train(cfg: TrainConfig, train_path: str | Path, out_dir: str | Path, val_pa
             state = payload.get("train_state") or {}
             if "optimizer" not in state:
                 raise DetectorError(f"{last_path} holds no training state to resume from")
-            check_resumable(state["config"], cfg, last_path)
-            net.load_state_dict(payload["model_state"])
-            opt.load_state_dict(state["optimizer"])
-            sched.load_state_dict(state["scheduler"])
-            set_rng_state(state["rng"], device)
             start, best, val = int(payload["step"]), state.get("best_val_loss"), state.get("val")
-            for group, base_lr in zip(opt.param_groups, sched.base_lrs):  # the schedule of this run's total
-                group["lr"] = base_lr * lr_factor(start, total, cfg)
+            restore_state(net, opt, sched, payload["model_state"], state, cfg, last_path, device, start, total)
         model = net
         if ctx.enabled:
             model = torch.nn.parallel.DistributedDataParallel(

@@ -50,7 +50,7 @@ def test_loss_normalised_over_the_global_batch_averages_to_the_whole_batch_loss(
 
 
 def _train_args(h5: Path, out: Path, steps: int) -> list[str]:
-    args = ["train", str(h5), "--out", str(out), "--steps", str(steps), "--batch-size", "4", "--workers", "0",
+    args = ["train", str(h5), "--out", str(out), "--preset", "cpu", "--steps", str(steps), "--batch-size", "4", "--workers", "0",
             "--quiet", "--set", "num_points=1024", "--set", "warmup_steps=1", "--seg-pretrain-steps", "1",
             "--set", "checkpoint_every=2"]
     for key, value in TINY_MODEL.items():

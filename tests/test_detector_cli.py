@@ -25,7 +25,8 @@ def h5_path(tmp_path_factory) -> Path:
 
 
 def tiny_args() -> list[str]:
-    args = ["--workers", "0", "--batch-size", "2", "--quiet", "--set", "num_points=1024", "--set", "warmup_steps=1"]
+    args = ["--preset", "cpu", "--workers", "0", "--batch-size", "2", "--quiet", "--set", "num_points=1024",
+            "--set", "warmup_steps=1"]
     for k, v in TINY_MODEL.items():
         args += ["--set", f"model.{k}={v}"]
     return args

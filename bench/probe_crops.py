@@ -1,0 +1,84 @@
+"""Stage-2 check on ground-truth-centred crops: ADD(-S) of crop poses on a label file, with the centre jittered
+like stage 1's error. Usage: python bench/probe_crops.py CKPT LABELS [--frames N] [--jitter M]"""
+
+from __future__ import annotations
+
+import argparse
+import time
+
+import numpy as np
+import torch
+
+from argen.h5 import LabelFile
+from detector.checkpoint import read_checkpoint
+from detector.crops import CropConfig
+from detector.infer import CropPoseConfig, crop_predictions, pose_from_crop
+from detector.metrics import pose_error
+from detector.pose import ObjectInfo
+from detector.cropnet import build_pose_net
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser()
+    ap.add_argument("ckpt")
+    ap.add_argument("labels")
+    ap.add_argument("--frames", type=int, default=100)
+    ap.add_argument("--jitter", type=float, default=0.012)
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--verify", type=int, default=None, help="CropPoseConfig.verify (default: its default)")
+    a = ap.parse_args()
+    torch.set_num_threads(2)
+    part = read_checkpoint(a.ckpt)["pose"]  # a stage-2 run's last.pt or a two-stage model.pt
+    net = build_pose_net(part, a.ckpt).eval()
+    ccfg = CropConfig.from_dict(part["crop_config"])
+    pcfg = CropPoseConfig() if a.verify is None else CropPoseConfig(verify=a.verify)
+    ids = part["class_ids"]
+    rng = np.random.default_rng(a.seed)
+    ok, n, errs, per, t_net = {}, {}, [], {}, 0.0
+    with LabelFile(a.labels) as lf:
+        tab = lf.objects
+        objs = ObjectInfo.from_table(tab)
+        for i in range(min(a.frames, lf.num_frames)):
+            f = lf.frame(i)
+            inst = f.instances
+            for g in range(len(inst)):
+                oid = int(inst.obj_id[g])
+                if oid not in ids or inst.visib_fract[g] < 0.1:
+                    continue
+                m = tab.index(oid)
+                dia = float(tab.diameters[m])
+                c = inst.control_points[g][8] + np.clip(rng.normal(0, a.jitter, 3), -2.5 * a.jitter, 2.5 * a.jitter)
+                t0 = time.perf_counter()
+                pred = crop_predictions(net, f.features, c[None], np.array([ids.index(oid)]), np.array([dia]), ccfg,
+                                        part["normalisation"], seed=i)[0]
+                res = None
+                if pred is not None:
+                    rows, prob, mxyz = pred
+                    res = pose_from_crop(f.features[rows, :3].astype(np.float64), prob, mxyz, dia, pcfg, rng,
+                                         objs.surface(oid))
+                    if res is not None and pcfg.recentre:
+                        R, t = res[0], res[1]
+                        c2 = R @ tab.control_points[m][8] + t
+                        pred = crop_predictions(net, f.features, c2[None], np.array([ids.index(oid)]), np.array([dia]),
+                                                ccfg, part["normalisation"], seed=i)[0]
+                        if pred is not None:
+                            rows, prob, mxyz = pred
+                            res = pose_from_crop(f.features[rows, :3].astype(np.float64), prob, mxyz, dia, pcfg, rng,
+                                                 objs.surface(oid)) or res
+                t_net += time.perf_counter() - t0
+                e = np.inf if res is None else pose_error(tab.model_points[m], bool(tab.symmetric[m]), inst.R[g],
+                                                          inst.t[g], res[0], res[1])
+                errs.append(e / dia)
+                name = tab.names[m]
+                per.setdefault(name, []).append(e / dia)
+    errs = np.array(errs)
+    print(f"{len(errs)} instances, {1000 * t_net / max(len(errs), 1):.1f} ms per crop pose")
+    for name, v in sorted(per.items()):
+        v = np.array(v)
+        print(f"  {name:12s} n={len(v):4d}  ADD@10% {100 * np.mean(v < 0.1):5.1f}  @30% {100 * np.mean(v < 0.3):5.1f}")
+    print(f"ALL ADD(-S)@10% {100 * np.mean(errs < 0.1):.1f}  @15% {100 * np.mean(errs < 0.15):.1f}  "
+          f"@30% {100 * np.mean(errs < 0.3):.1f}")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,57 @@
+"""Stage-1 check: how far a two-stage model's stage-1 centres are from the true box centres (the crop jitter
+stage 2 must forgive), and how many instances get a centre at all. Usage: python bench/probe_stage1.py CKPT LABELS
+[--frames N] (CKPT: a stage-1 run's last.pt or a two-stage model.pt)."""
+
+from __future__ import annotations
+
+import argparse
+
+import numpy as np
+import torch
+
+from argen.h5 import LabelFile
+from detector.checkpoint import Checkpoint, build_model, read_checkpoint
+from detector.evaluate import network_predictor
+from detector.pose import ObjectInfo, PoseConfig, detect
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser()
+    ap.add_argument("ckpt")
+    ap.add_argument("labels")
+    ap.add_argument("--frames", type=int, default=60)
+    ap.add_argument("--tau", type=float, default=0.3)
+    a = ap.parse_args()
+    torch.set_num_threads(2)
+    payload = read_checkpoint(a.ckpt)
+    payload = payload.get("detect", payload)
+    model, cfg = build_model(payload, a.ckpt, "cpu")
+    ck = Checkpoint(model.eval(), cfg, payload["class_ids"], payload["objects"], payload["num_points"],
+                    payload["step"], {}, payload["normalisation"])
+    pred = network_predictor(ck)
+    objs = ObjectInfo.from_table(payload["objects"])
+    errs, found, total = [], 0, 0
+    with LabelFile(a.labels) as lf:
+        for i in range(min(a.frames, lf.num_frames)):
+            f = lf.frame(i)
+            p = pred(f)
+            dets = detect(p.xyz, p.obj_ids, p.confidence, p.control_points, objs,
+                          PoseConfig(tau=a.tau, centre_votes=True))
+            inst = f.instances
+            for g in range(len(inst)):
+                if inst.visib_fract[g] < 0.1:
+                    continue
+                total += 1
+                c = inst.control_points[g][8]
+                d = [np.linalg.norm(x.control_points[8] - c) for x in dets if x.obj_id == inst.obj_id[g]]
+                if d and min(d) < 0.1:
+                    found += 1
+                    errs.append(min(d))
+    e = np.array(errs) * 100
+    print(f"{total} instances, {found} with a centre within 10 cm ({100 * found / max(total, 1):.1f} %); "
+          f"centre error cm: median {np.median(e):.2f}, p90 {np.percentile(e, 90):.2f}, "
+          f"per-axis RMS {np.sqrt(np.mean(e ** 2) / 3):.2f}")
+
+
+if __name__ == "__main__":
+    main()

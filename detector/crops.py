@@ -1,0 +1,143 @@
+"""Stage 2 data: object-centred crops of a frame's points, and their dense model-coordinate targets.
+
+A crop is the ball of radius ``radius * diameter`` around a centre (a stage-1 box-centre vote at inference,
+the ground-truth centre plus jitter in training), taken from the label file's frame points (not the network's
+subsample, so an object keeps hundreds of points). Its network input expresses the points relative to the
+centre in units of the ball radius. Targets, derived from the label file's instance poses: which points are the
+instance's (foreground), and each foreground point's model-frame coordinates in units of the diameter,
+``R.T @ (p - t) / diameter``.
+
+Everything is pure numpy; metres; camera frame (OpenCV axes); poses map model into camera points.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+
+
+@dataclass
+class CropConfig:
+    """How crops are cut and sampled.
+
+    radius: ball radius as a fraction of the object's diameter; num_points: points fed per crop;
+    min_points: crops with fewer frame points are not used; jitter: metres, standard deviation per axis of the
+    training crop centre around the true centre (stage 1's centre error); jitter_clip: metres, its bound;
+    min_visib: training instances with a smaller visible fraction are left out; min_object_points: nor those
+    with fewer labelled points; roll_deg: augmentation rolls a crop about the camera ray by up to this many
+    degrees (a camera's roll about its view direction varies little in a capture: capture-sim draws it with a 5
+    degree spread, a hand-held sensor also stays near upright, and the support plane below an object is a cue
+    the network should keep).
+    """
+
+    radius: float = 0.7
+    num_points: int = 256
+    min_points: int = 32
+    jitter: float = 0.012
+    jitter_clip: float = 0.03
+    min_visib: float = 0.1
+    min_object_points: int = 30
+    roll_deg: float = 15.0
+
+    def to_dict(self) -> dict:
+        return dict(self.__dict__)
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "CropConfig":
+        return cls(**d)
+
+
+def ball_rows(xyz: np.ndarray, centre: np.ndarray, radius: float) -> np.ndarray:
+    """Rows of the points (N,3) metres within ``radius`` metres of ``centre`` (3,). Returns (k,) int64, sorted."""
+    d2 = np.sum((np.asarray(xyz, np.float64) - np.asarray(centre, np.float64)) ** 2, axis=1)
+    return np.flatnonzero(d2 <= radius * radius)
+
+
+def sample_crop(rows: np.ndarray, num_points: int, rng: np.random.Generator) -> np.ndarray:
+    """``num_points`` of ``rows``: a random subset when there are enough, else all of them and random repeats."""
+    if len(rows) >= num_points:
+        return rows[np.sort(rng.choice(len(rows), num_points, replace=False))]
+    return np.concatenate([rows, rows[rng.choice(len(rows), num_points - len(rows), replace=True)]])
+
+
+def crop_input(features: np.ndarray, rows: np.ndarray, centre: np.ndarray, radius: float,
+               normalisation: dict) -> np.ndarray:
+    """Network input of a crop: (n, 9) float32 ``[(p - centre) / radius, colour (normalised), normal]``.
+
+    features: (N,9) float32 label-file features, colour in [0, 1]; rows: (n,) the crop's rows; centre: (3,)
+    metres; radius: metres; normalisation: {"rgb_mean", "rgb_std"} (``detector.data.NORMALISATION``).
+    """
+    out = np.array(np.asarray(features)[rows], dtype=np.float32, copy=True)
+    out[:, 3:6] = (out[:, 3:6] - normalisation["rgb_mean"]) / normalisation["rgb_std"]
+    out[:, :3] = (out[:, :3] - np.asarray(centre, np.float32)) / np.float32(radius)
+    return out
+
+
+def model_coordinates(xyz: np.ndarray, R: np.ndarray, t: np.ndarray, diameter: float) -> np.ndarray:
+    """Model-frame coordinates of camera points in units of the diameter: ``R.T @ (p - t) / diameter``.
+
+    xyz: (n,3) metres; R (3,3), t (3,) T_cam_model. Returns (n,3) float32.
+    """
+    return (((np.asarray(xyz, np.float64) - t) @ np.asarray(R, np.float64)) / diameter).astype(np.float32)
+
+
+def symmetry_targets(coords: np.ndarray, sym_transforms: np.ndarray, diameter: float) -> np.ndarray:
+    """The model coordinates under every symmetry of the object: the pose ``T @ S`` looks the same as ``T``, and
+    a point with coordinates x has coordinates ``S^-1 x`` under it.
+
+    coords: (n,3) in diameters; sym_transforms: (S,4,4) model-frame symmetries (identity first), metres.
+    Returns (S,n,3) float32 in diameters.
+    """
+    S = np.asarray(sym_transforms, np.float64)
+    inv = np.linalg.inv(S)
+    x = np.asarray(coords, np.float64) * diameter
+    out = np.einsum("sij,nj->sni", inv[:, :3, :3], x) + inv[:, None, :3, 3]
+    return (out / diameter).astype(np.float32)
+
+
+def jittered_centre(centre: np.ndarray, cfg: CropConfig, rng: np.random.Generator) -> np.ndarray:
+    """A training crop centre: ``centre`` (3,) metres plus clipped Gaussian jitter per axis. Returns (3,) float64."""
+    return np.asarray(centre, np.float64) + np.clip(rng.normal(0.0, cfg.jitter, 3), -cfg.jitter_clip, cfg.jitter_clip)
+
+
+def roll_about_ray(points: np.ndarray, centre: np.ndarray, angle: float) -> tuple[np.ndarray, np.ndarray]:
+    """Rotate points about the camera ray through ``centre`` by ``angle`` radians (a camera roll seen from the crop).
+
+    points: (n,3) metres; centre: (3,). Returns the rotated points (n,3) and the rotation Q (3,3) (p' = Q (p - c) + c).
+    """
+    axis = np.asarray(centre, np.float64) / np.linalg.norm(centre)
+    K = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
+    Q = np.eye(3) + np.sin(angle) * K + (1 - np.cos(angle)) * K @ K
+    return (np.asarray(points, np.float64) - centre) @ Q.T + centre, Q
+
+
+def training_crop(frame, g: int, diameter: float, sym_transforms: np.ndarray, cfg: CropConfig,
+                  rng: np.random.Generator, normalisation: dict, augment: bool = False) -> dict | None:
+    """One training crop around instance ``g`` of ``frame`` (an ``argen.h5.FrameLabels``), or None (too few points).
+
+    Returns {"features": (n,9) float32 network input, "fg": (n,) float32 1 on the instance's points,
+    "coords": (S,n,3) float32 model coordinates (diameters) of every point under each symmetry (meaningful on
+    foreground points only), "centre": (3,) metres}. With ``augment`` the crop is rolled about the camera ray by up
+    to ``cfg.roll_deg`` (model coordinates do not change), colour is scaled and points get 1 mm noise.
+    """
+    inst = frame.instances
+    xyz = np.asarray(frame.features[:, :3], np.float64)
+    radius = cfg.radius * diameter
+    centre = jittered_centre(inst.control_points[g][8], cfg, rng)
+    rows = ball_rows(xyz, centre, radius)
+    if len(rows) < cfg.min_points:
+        return None
+    rows = sample_crop(rows, cfg.num_points, rng)
+    fg = np.asarray(frame.instance)[rows] == g
+    coords = model_coordinates(xyz[rows], inst.R[g], inst.t[g], diameter)
+    feats = crop_input(frame.features, rows, centre, radius, normalisation)
+    if augment:
+        p, Q = roll_about_ray(xyz[rows], centre, np.deg2rad(rng.uniform(-cfg.roll_deg, cfg.roll_deg)))
+        p = p + rng.normal(0.0, 0.001, p.shape)
+        feats[:, :3] = ((p - centre) / radius).astype(np.float32)
+        feats[:, 6:9] = (feats[:, 6:9] @ Q.T.astype(np.float32))
+        feats[:, 3:6] = feats[:, 3:6] * np.float32(rng.uniform(0.8, 1.2)) + rng.normal(0, 0.1, 3).astype(np.float32)
+    return {"features": feats, "fg": fg.astype(np.float32),
+            "coords": symmetry_targets(coords, sym_transforms, diameter), "centre": centre}

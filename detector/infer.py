@@ -1,0 +1,153 @@
+"""Inference, stage 2: poses of detected objects from crops of the frame around their stage-1 centres.
+
+For each (object, centre) the crop network (:mod:`detector.cropnet`) labels the crop's points as the object's
+or not and regresses their model coordinates; RANSAC over 3-point Kabsch hypotheses (:func:`detector.pose.
+ransac_kabsch`) turns the foreground correspondences into a pose. Optionally the crop is cut again around the
+new centre and the pose recomputed (``recentre``), which forgives a larger stage-1 centre error.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from detector.crops import CropConfig, ball_rows, crop_input, sample_crop
+from detector.pose import Detection, fit_residuals, fit_rms, ransac_kabsch
+
+
+@dataclass
+class CropPoseConfig:
+    """Pose-from-crop options. fg_threshold: foreground probability for a correspondence; inlier: RANSAC
+    inlier distance as a fraction of the diameter; hypotheses: RANSAC hypotheses; min_fg: fewest foreground
+    points for a pose; recentre: crop again around the first pose's centre and redo it this many times;
+    verify: refit this many of the best RANSAC hypotheses and keep the one whose model surface fits the crop's
+    foreground points best (trimmed point-to-plane RMS over the best ``verify_trim`` share, as ICP's acceptance
+    test); 1 keeps RANSAC's own choice."""
+
+    fg_threshold: float = 0.5
+    inlier: float = 0.05
+    hypotheses: int = 128
+    min_fg: int = 8
+    recentre: int = 1
+    verify: int = 16
+    verify_trim: float = 0.7
+
+
+@torch.no_grad()
+def crop_predictions(net, features: np.ndarray, centres: np.ndarray, classes: np.ndarray, diameters: np.ndarray,
+                     crop_cfg: CropConfig, normalisation: dict, seed: int = 0, device="cpu"):
+    """Run the crop network on one crop per centre.
+
+    features: (N,9) the frame's label features; centres: (D,3) metres; classes: (D,) class indices;
+    diameters: (D,) metres. Returns a list of D (rows (n,) into features, fg probability (n,), model coordinates
+    (n,3) metres) or None where the crop holds fewer than ``crop_cfg.min_points`` points.
+    """
+    xyz = np.asarray(features[:, :3], np.float64)
+    rng = np.random.default_rng(seed)
+    batch, keep, out = [], [], [None] * len(centres)
+    for k, (c, dia) in enumerate(zip(centres, diameters)):
+        rows = ball_rows(xyz, c, crop_cfg.radius * dia)
+        if len(rows) < crop_cfg.min_points:
+            continue
+        rows = sample_crop(rows, crop_cfg.num_points, rng)
+        batch.append(crop_input(features, rows, c, crop_cfg.radius * dia, normalisation))
+        keep.append((k, rows))
+    if not batch:
+        return out
+    feats = torch.from_numpy(np.stack(batch)).to(device)
+    cls = torch.as_tensor(np.asarray(classes)[[k for k, _ in keep]], dtype=torch.int64, device=device)
+    res = net(feats, cls)
+    prob = torch.sigmoid(res["fg_logit"]).cpu().numpy()
+    coords = res["coords"].double().cpu().numpy()
+    for j, (k, rows) in enumerate(keep):
+        out[k] = (rows, prob[j], coords[j] * diameters[k])
+    return out
+
+
+def pose_from_crop(xyz: np.ndarray, prob: np.ndarray, model_xyz: np.ndarray, diameter: float, cfg: CropPoseConfig,
+                   rng: np.random.Generator, surface=None) -> tuple[np.ndarray, np.ndarray, float, np.ndarray] | None:
+    """A pose from one crop's predictions: xyz (n,3) camera metres, prob (n,), model_xyz (n,3) model metres.
+
+    surface: (cKDTree of model points, normals) for ``cfg.verify`` > 1 (:meth:`detector.pose.ObjectInfo.surface`).
+    Returns R (3,3), t (3,), score (inlier share x mean foreground probability) and the inlier rows of the
+    crop, or None with fewer than ``cfg.min_fg`` foreground points.
+    """
+    fg = np.flatnonzero(prob >= cfg.fg_threshold)
+    if len(fg) < max(cfg.min_fg, 3):
+        return None
+    keep = cfg.verify if surface is not None else 1
+    cands = ransac_kabsch(model_xyz[fg], xyz[fg], prob[fg], cfg.inlier * diameter, rng, cfg.hypotheses, keep=keep)
+    if keep > 1:
+        tree, normals = surface
+        fits = [fit_rms(fit_residuals(xyz[fg], tree, normals, R, t, 0.05 * diameter), cfg.verify_trim)
+                for R, t, _ in cands]
+        R, t, inl = cands[int(np.argmin(fits))]
+    else:
+        R, t, inl = cands
+    score = float(inl.mean() * prob[fg].mean())
+    return R, t, score, fg[inl]
+
+
+class CropPoser:
+    """Stage 2 at inference: replaces each stage-1 detection's pose by the crop network's.
+
+    net: a CropNet (eval mode); class_ids: its object ids (class c is ``class_ids[c]``); objects: the pose
+    stage's :class:`detector.pose.ObjectInfo`; crop_cfg / cfg: crop and pose options; normalisation: colour
+    normalisation of the network input. Calling it with (detections, features (N,9), timings) returns the
+    detections with stage-2 poses, scores ``stage-1 score x crop score`` and ``points`` = the crop's foreground
+    rows of ``features`` (ICP uses them). A detection whose crop yields no pose is dropped. Adds "stage2" seconds.
+    """
+
+    def __init__(self, net, class_ids: list[int], objects, crop_cfg: CropConfig, normalisation: dict,
+                 cfg: CropPoseConfig | None = None, device="cpu", seed: int = 0):
+        self.net, self.class_ids, self.objects = net, list(class_ids), objects
+        self.crop_cfg, self.normalisation, self.cfg = crop_cfg, normalisation, cfg or CropPoseConfig()
+        self.device, self.seed = device, seed
+
+    def _run(self, features, centres, oids):
+        classes = np.array([self.class_ids.index(o) for o in oids], np.int64)
+        dia = np.array([self.objects.diameters[o] for o in oids], np.float64)
+        return crop_predictions(self.net, features, np.asarray(centres), classes, dia, self.crop_cfg,
+                                self.normalisation, self.seed, self.device)
+
+    def __call__(self, detections: list[Detection], features: np.ndarray, timings: dict | None = None
+                 ) -> list[Detection]:
+        import time
+        from dataclasses import replace
+
+        t0 = time.perf_counter()
+        dets = [d for d in detections if d.obj_id in self.class_ids]
+        xyz = np.asarray(features[:, :3], np.float64)
+        rng = np.random.default_rng(self.seed)
+        centres = [d.control_points[8] for d in dets]
+        results: list = [None] * len(dets)
+        for it in range(1 + self.cfg.recentre):
+            todo = [k for k in range(len(dets)) if it == 0 or results[k] is not None]
+            if not todo:
+                break
+            preds = self._run(features, [centres[k] for k in todo], [dets[k].obj_id for k in todo])
+            for k, pred in zip(todo, preds):
+                if pred is None:
+                    continue
+                rows, prob, mxyz = pred
+                oid = dets[k].obj_id
+                res = pose_from_crop(xyz[rows], prob, mxyz, self.objects.diameters[oid], self.cfg, rng,
+                                     self.objects.surface(oid) if self.cfg.verify > 1 else None)
+                if res is None:
+                    continue
+                R, t, score, _ = res
+                fg = np.unique(rows[prob >= self.cfg.fg_threshold])
+                results[k] = (R, t, score, fg)
+                centres[k] = R @ self.objects.control_points[dets[k].obj_id][8] + t
+        out = []
+        for d, r in zip(dets, results):
+            if r is None:
+                continue
+            R, t, score, fg = r
+            cps = self.objects.control_points[d.obj_id] @ R.T + t
+            out.append(replace(d, R=R, t=t, score=float(d.score * score), control_points=cps, points=fg))
+        if timings is not None:
+            timings["stage2"] = timings.get("stage2", 0.0) + time.perf_counter() - t0
+        return out

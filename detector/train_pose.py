@@ -1,0 +1,189 @@
+"""Stage-2 training: the crop network (:mod:`detector.cropnet`) on ground-truth-centred, jittered crops.
+
+A run folder holds ``config.yaml``, ``metrics.csv`` (one row per step) and ``last.pt`` (every
+``checkpoint_every`` steps and at the end, with the optimiser state for ``resume``). Items are pure functions of
+(seed, epoch, frame), batches are ``batch_frames`` frames' crops, so a resumed run repeats the uninterrupted
+one. The learning-rate schedule is :func:`detector.train.lr_factor`'s. CPU or CUDA, the same code.
+"""
+
+from __future__ import annotations
+
+import csv
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import torch
+import yaml
+
+from detector.checkpoint import FORMAT, atomic_torch_save, read_checkpoint
+from detector.crops import CropConfig
+from detector.cropnet import CropNet, CropNetConfig, crop_loss
+from detector.data import NORMALISATION, CropDataset, StreamBatchSampler, collate_crops
+from detector.errors import DetectorError
+from detector.train import (_worker_init, config_from_dict, config_to_dict, loader_generator, lr_factor,
+                            resolve_device, restore_state, rng_state, set_dotted)
+
+POSE_KIND = "crop-pose"
+POSE_METRICS = ["step", "epoch", "loss", "fg", "coord", "fg_acc", "crops", "lr", "steps_per_s"]
+
+
+@dataclass
+class PoseTrainConfig:
+    """A stage-2 run. steps: optimiser steps; batch_frames: frames per batch (each gives its instances' crops)."""
+
+    crop: CropConfig = field(default_factory=CropConfig)
+    net: CropNetConfig = field(default_factory=CropNetConfig)
+    steps: int = 6500
+    batch_frames: int = 8
+    lr: float = 2e-3
+    weight_decay: float = 1e-4
+    schedule: str = "cosine"
+    warmup_steps: int = 100
+    min_lr_ratio: float = 0.01
+    grad_clip: float = 10.0
+    w_coord: float = 5.0
+    augment: bool = True
+    class_ids: list[int] | None = None
+    checkpoint_every: int = 200
+    num_workers: int = 1
+    device: str = "auto"
+    seed: int = 0
+
+
+def pose_payload(net: CropNet, cfg: PoseTrainConfig, class_ids: list[int], objects: dict, step: int,
+                 train_state: dict | None = None) -> dict:
+    """The stage-2 part of a checkpoint: weights, configs, classes and the object table (plain values)."""
+    return {"kind": POSE_KIND, "model_state": {k: v.detach().cpu() for k, v in net.state_dict().items()},
+            "net_config": cfg.net.to_dict(), "crop_config": cfg.crop.to_dict(), "class_ids": list(class_ids),
+            "objects": objects, "normalisation": dict(NORMALISATION), "step": int(step),
+            "train_config": config_to_dict(cfg), "train_state": train_state}
+
+
+def forward_pose_loss(net: torch.nn.Module, batch: dict, cfg: PoseTrainConfig, device: torch.device
+                      ) -> tuple[torch.Tensor, dict[str, float]]:
+    """Loss of a batch of crops and its parts, plus the foreground accuracy and the number of crops."""
+    feats, cls = batch["features"].to(device), batch["cls"].to(device)
+    fg, coords, mask = batch["fg"].to(device), batch["coords"].to(device), batch["sym_mask"].to(device)
+    out = net(feats, cls)
+    loss, parts = crop_loss(out, fg, coords, mask, cfg.w_coord)
+    acc = ((out["fg_logit"] > 0).float() == fg).float().mean()
+    return loss, {"loss": float(loss.detach()), "fg": float(parts["fg"]), "coord": float(parts["coord"]),
+                  "fg_acc": float(acc), "crops": int(len(cls))}
+
+
+def train_pose(cfg: PoseTrainConfig, train_path: str | Path, out_dir: str | Path, resume: bool = False,
+               progress: bool = True, stop_after: int | None = None, log_every: int = 0) -> dict:
+    """Train the stage-2 crop network on a label file; checkpoints and metrics in ``out_dir``.
+
+    stop_after: end after this step as if interrupted (``resume=True`` continues the same schedule);
+    log_every: print a progress line every this many steps (0 = a tqdm bar when ``progress``).
+    Returns {"steps", "seconds", "last" (mean of the last 20 steps' parts), "checkpoint"}.
+    """
+    from tqdm import tqdm
+
+    out_dir = Path(out_dir)
+    last_path = out_dir / "last.pt"
+    if resume and not last_path.is_file():
+        raise DetectorError(f"nothing to resume: {last_path} does not exist")
+    if not resume and last_path.exists():
+        raise DetectorError(f"{out_dir} already holds a run; resume it or choose another folder")
+    device = resolve_device(cfg.device)
+    ds = CropDataset(train_path, cfg.crop, augment=cfg.augment, seed=cfg.seed, class_ids=cfg.class_ids)
+    with torch.random.fork_rng(devices=[device] if device.type == "cuda" else []):
+        torch.manual_seed(cfg.seed)
+        net = CropNet(cfg.net, len(ds.class_ids)).to(device)
+        opt = torch.optim.AdamW(net.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
+        sched = torch.optim.lr_scheduler.LambdaLR(opt, lambda s: lr_factor(s, cfg.steps, cfg))
+        start = 0
+        if resume:
+            payload = read_checkpoint(last_path, device)
+            part = payload.get("pose") or {}
+            state = part.get("train_state") or {}
+            if "optimizer" not in state:
+                raise DetectorError(f"{last_path} holds no stage-2 training state to resume from")
+            start = int(part["step"])
+            restore_state(net, opt, sched, part["model_state"], state, cfg, last_path, device, start, cfg.steps)
+        out_dir.mkdir(parents=True, exist_ok=True)
+        (out_dir / "config.yaml").write_text(yaml.safe_dump(config_to_dict(cfg), sort_keys=False))
+        rows = []
+        if resume and (out_dir / "metrics.csv").is_file():
+            with (out_dir / "metrics.csv").open(newline="") as f:
+                rows = [r for r in csv.DictReader(f) if int(r["step"]) <= start]
+        mfile = (out_dir / "metrics.csv").open("w", newline="")
+        writer = csv.DictWriter(mfile, fieldnames=POSE_METRICS)
+        writer.writeheader()
+        writer.writerows(rows)
+
+        def save(step: int) -> None:
+            state = {"optimizer": opt.state_dict(), "scheduler": sched.state_dict(), "rng": rng_state(device),
+                     "config": config_to_dict(cfg)}
+            atomic_torch_save({"format": FORMAT, "version": 2, "pose": pose_payload(net, cfg, ds.class_ids,
+                                                                                   ds.objects, step, state)},
+                              last_path)
+
+        sampler = StreamBatchSampler(len(ds), cfg.batch_frames, cfg.seed, start=start)
+        loader = torch.utils.data.DataLoader(ds, batch_sampler=sampler, collate_fn=collate_crops,
+                                             num_workers=cfg.num_workers, generator=loader_generator(cfg.seed),
+                                             worker_init_fn=_worker_init)
+        batches = iter(loader)
+        bar = tqdm(total=cfg.steps, initial=start, disable=not progress or log_every > 0, desc="train stage 2")
+        end = cfg.steps if stop_after is None else min(cfg.steps, stop_after)
+        recent: list[dict] = []
+        step, t0 = start, time.perf_counter()
+        t_last = t0
+        net.train()
+        empty = 0
+        try:
+            while step < end:
+                batch = next(batches)
+                if len(batch["cls"]) == 0:  # frames without a usable instance: no step (resume sees the same)
+                    empty += 1
+                    if empty > 100:
+                        raise DetectorError(f"{train_path}: 100 batches in a row hold no usable instance")
+                    continue
+                empty = 0
+                lr = opt.param_groups[0]["lr"]
+                loss, parts = forward_pose_loss(net, batch, cfg, device)
+                opt.zero_grad(set_to_none=True)
+                loss.backward()
+                if cfg.grad_clip > 0:
+                    torch.nn.utils.clip_grad_norm_(net.parameters(), cfg.grad_clip)
+                opt.step()
+                sched.step()
+                step += 1
+                now = time.perf_counter()
+                row = {"step": step, "epoch": f"{step * cfg.batch_frames / len(ds):.4f}", **parts, "lr": lr,
+                       "steps_per_s": 1.0 / max(now - t_last, 1e-9)}
+                t_last = now
+                writer.writerow({k: (f"{v:.6g}" if isinstance(v, float) else v) for k, v in row.items()})
+                mfile.flush()
+                recent = (recent + [parts])[-20:]
+                bar.update(1)
+                if log_every and step % log_every == 0:
+                    m = {k: np.mean([r[k] for r in recent]) for k in ("loss", "fg", "coord", "fg_acc")}
+                    print(f"stage 2 step {step}/{cfg.steps} {now - t0:.0f}s loss {m['loss']:.4f} fg {m['fg']:.4f} "
+                          f"coord {m['coord']:.4f} fg_acc {m['fg_acc']:.3f}", flush=True)
+                if step % cfg.checkpoint_every == 0 or step == end:
+                    save(step)
+        finally:
+            del batches
+            bar.close()
+            mfile.close()
+            ds.close()
+    last = {k: float(np.mean([r[k] for r in recent])) for k in ("loss", "fg", "coord", "fg_acc")} if recent else {}
+    return {"steps": step, "seconds": time.perf_counter() - t0, "last": last, "checkpoint": last_path}
+
+
+def load_pose_config(data: dict | None, overrides: dict | None = None) -> PoseTrainConfig:
+    """A checked PoseTrainConfig from a mapping (YAML) with flat dotted ``overrides`` ("crop.radius": 0.8)."""
+    d = config_to_dict(PoseTrainConfig())
+    for k, v in (data or {}).items():
+        set_dotted(d, k, v)
+    for k, v in (overrides or {}).items():
+        set_dotted(d, k, v)
+    cfg = config_from_dict(PoseTrainConfig, d)
+    if cfg.steps < 1 or cfg.batch_frames < 1 or cfg.lr <= 0 or cfg.crop.num_points < 3 or cfg.crop.radius <= 0:
+        raise DetectorError("stage-2 config: steps, batch_frames, lr, crop.num_points and crop.radius must be positive")
+    return cfg

@@ -1,0 +1,123 @@
+"""The default detector: two stages trained one after the other, saved as one model file.
+
+Stage 1 is the paper's PoseNet (cpu preset) trained to segment objects and vote for their box centres only
+(``loss.centre_only``); stage 2 is the crop network (:mod:`detector.cropnet`) trained on crops around the true
+centres, jittered like stage 1's centre error. A run folder holds ``detect/`` and ``pose/`` (each a resumable
+run of its own) and ``model.pt``: both stages' weights and the inference settings (:func:`detector.checkpoint.
+save_two_stage`), written when stage 2 ends. ``resume`` continues whichever stage is unfinished.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import yaml
+
+from detector.checkpoint import read_checkpoint, save_two_stage
+from detector.errors import DetectorError
+from detector.train import config_to_dict, make_config, train
+from detector.train_pose import load_pose_config, train_pose
+
+#: Stage-1 overrides of the cpu training preset: centre votes only.
+STAGE1_DEFAULTS = {"loss.centre_only": True, "steps": 3000, "checkpoint_every": 250, "val_every": 1000,
+                   "num_workers": 1}
+#: Pose-stage settings stored in the model file (keys of detector.pose.PoseConfig).
+POSE_DEFAULTS = {"tau": 0.3, "centre_votes": True, "min_score": 0.0}
+
+
+@dataclass
+class TwoStageConfig:
+    """stage1: dotted overrides of the cpu TrainConfig; stage2: dotted overrides of PoseTrainConfig;
+    pose: PoseConfig values and infer: CropPoseConfig values, stored in model.pt (the defaults of eval and
+    predict)."""
+
+    stage1: dict = field(default_factory=dict)
+    stage2: dict = field(default_factory=dict)
+    pose: dict = field(default_factory=dict)
+    infer: dict = field(default_factory=dict)
+
+    def resolved(self):
+        """(TrainConfig of stage 1, PoseTrainConfig of stage 2, pose settings, stage-2 inference settings), checked."""
+        from detector.infer import CropPoseConfig
+        from detector.pose import PoseConfig
+
+        s1 = make_config("cpu", {**STAGE1_DEFAULTS, **self.stage1})
+        s2 = load_pose_config(None, self.stage2)
+        pose = {**POSE_DEFAULTS, **self.pose}
+        for name, keys, given in (("pose", PoseConfig.__dataclass_fields__, pose),
+                                  ("infer", CropPoseConfig.__dataclass_fields__, self.infer)):
+            unknown = [k for k in given if k not in keys]
+            if unknown:
+                raise DetectorError(f"two-stage config: unknown {name} option '{unknown[0]}'")
+        return s1, s2, pose, asdict(CropPoseConfig(**self.infer))
+
+
+def load_two_stage_config(path: str | Path | None = None, overrides: dict | None = None) -> TwoStageConfig:
+    """A TwoStageConfig from a YAML file (keys stage1, stage2, pose, infer) and ``--set`` overrides such as
+    ``{"stage2.steps": 3000, "stage1.lr": 1e-3, "pose.tau": 0.5, "infer.verify": 8}``."""
+    data: dict = {"stage1": {}, "stage2": {}, "pose": {}, "infer": {}}
+    if path is not None:
+        path = Path(path)
+        if not path.is_file():
+            raise DetectorError(f"config file not found: {path}")
+        try:
+            loaded = yaml.safe_load(path.read_text()) or {}
+        except yaml.YAMLError as exc:
+            raise DetectorError(f"{path} is not valid YAML: {str(exc).splitlines()[0]}") from None
+        if not isinstance(loaded, dict) or set(loaded) - set(data):
+            raise DetectorError(f"{path}: a two-stage config has the keys stage1, stage2, pose and infer")
+        for k, v in loaded.items():
+            data[k].update(v or {})
+    for key, value in (overrides or {}).items():
+        head, _, rest = key.partition(".")
+        if head not in data or not rest:
+            raise DetectorError(f"unknown two-stage option '{key}' (use stage1.KEY, stage2.KEY, pose.KEY or "
+                                "infer.KEY)")
+        data[head][rest] = value
+    cfg = TwoStageConfig(**data)
+    cfg.resolved()
+    return cfg
+
+
+def train_two_stage(cfg: TwoStageConfig, train_path: str | Path, out_dir: str | Path, resume: bool = False,
+                    progress: bool = True) -> Path:
+    """Train stage 1 into ``out_dir/detect`` and stage 2 into ``out_dir/pose``, then write ``out_dir/model.pt``.
+
+    A stage whose run is complete is not trained again; one that was interrupted is resumed (with ``resume``).
+    Returns the model file's path.
+    """
+    import os
+
+    if int(os.environ.get("WORLD_SIZE", "1")) > 1:
+        raise DetectorError("the two-stage model trains in one process (on a GPU with --set stage1.device=cuda "
+                            "--set stage2.device=cuda); torchrun is for --preset cpu or paper")
+    out_dir = Path(out_dir)
+    s1, s2, pose, infer = cfg.resolved()
+    out_dir.mkdir(parents=True, exist_ok=True)
+    (out_dir / "two_stage.yaml").write_text(yaml.safe_dump(config_to_dict(cfg), sort_keys=False))
+    d1, d2 = out_dir / "detect", out_dir / "pose"
+    done1 = _step(d1 / "last.pt", "detect")
+    if done1 is None or done1 < s1.steps:
+        if done1 is not None and not resume:
+            raise DetectorError(f"{out_dir} holds an unfinished run; add --resume to continue it")
+        train(s1, train_path, d1, resume=done1 is not None, progress=progress)
+    done2 = _step(d2 / "last.pt", "pose")
+    if done2 is None or done2 < s2.steps:
+        if done2 is not None and not resume:
+            raise DetectorError(f"{out_dir} holds an unfinished run; add --resume to continue it")
+        train_pose(s2, train_path, d2, resume=done2 is not None, progress=progress)
+    detect = read_checkpoint(d1 / "last.pt")
+    part = read_checkpoint(d2 / "last.pt")["pose"]
+    if list(part["class_ids"]) != list(detect["class_ids"]):
+        raise DetectorError(f"the stages learned different objects ({detect['class_ids']} vs {part['class_ids']})")
+    return save_two_stage(out_dir / "model.pt", detect, {**part, "infer_config": infer},
+                          {"pose_config": pose, "train_file": str(train_path)})
+
+
+def _step(path: Path, stage: str) -> int | None:
+    """Steps done by the run whose last.pt is ``path`` (None: no such run)."""
+    if not path.is_file():
+        return None
+    payload = read_checkpoint(path)
+    return int(payload["pose"]["step"] if stage == "pose" else payload["step"])

@@ -1,0 +1,270 @@
+"""Stage 2: crops, model-coordinate targets, symmetry-aware loss, RANSAC poses, the crop network and its training."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+from scipy.spatial.transform import Rotation
+from typer.testing import CliRunner
+
+from argen.cli import app as argen_app
+from argen.h5 import LabelFile
+from argen.label import LabelConfig, LabelRequest, run_label
+from detector.cropnet import CropNet, CropNetConfig, crop_loss
+from detector.crops import (CropConfig, ball_rows, model_coordinates, roll_about_ray, symmetry_targets,
+                            training_crop)
+from detector.data import NORMALISATION, CropDataset, collate_crops
+from detector.pose import kabsch_batch, ransac_kabsch
+
+
+@pytest.fixture(scope="module")
+def labels(tmp_path_factory):
+    """A 4-frame noisy capture-sim dataset of the built-in objects, labelled."""
+    d = tmp_path_factory.mktemp("crops")
+    r = CliRunner().invoke(argen_app, ["capture-sim", "--frames", "4", "--out", str(d / "ds"), "--seed", "8",
+                                       "--quiet"])
+    assert r.exit_code == 0, r.output
+    run_label(LabelRequest(dataset=d / "ds", split="train_pbr", out=d / "l.h5", progress=False,
+                           cfg=LabelConfig(max_points=20000)))
+    return d / "l.h5"
+
+
+def test_training_crop_targets_are_the_instance_and_its_model_coordinates(labels):
+    cfg = CropConfig(jitter=0.0)
+    with LabelFile(labels) as lf:
+        tab = lf.objects
+        f = lf.frame(0)
+        xyz = f.features[:, :3].astype(np.float64)
+        for g in range(len(f.instances)):
+            m = tab.index(int(f.instances.obj_id[g]))
+            dia = float(tab.diameters[m])
+            c = training_crop(f, g, dia, tab.sym_transforms[m], cfg, np.random.default_rng(0), NORMALISATION)
+            if c is None:
+                continue
+            centre = f.instances.control_points[g][8]
+            # input: points relative to the (unjittered) centre in radii, all inside the ball
+            assert np.abs(c["centre"] - centre).max() < 1e-6
+            assert np.linalg.norm(c["features"][:, :3], axis=1).max() <= 1.0 + 1e-5
+            p = c["features"][:, :3] * cfg.radius * dia + centre
+            fg = c["fg"] > 0
+            assert fg.any() and not fg.all()
+            # foreground: exactly the points the label file gives to this instance
+            d, j = __import__("scipy.spatial", fromlist=["cKDTree"]).cKDTree(xyz).query(p)
+            assert d.max() < 1e-5
+            assert np.array_equal(fg, f.instance[j] == g)
+            # identity symmetry first: R @ (coords * dia) + t reproduces the camera points
+            back = (c["coords"][0] * dia) @ f.instances.R[g].T + f.instances.t[g]
+            assert np.abs(back - p).max() < 1e-4
+            # foreground points lie on the model: near the model's surface sample
+            near = __import__("scipy.spatial", fromlist=["cKDTree"]).cKDTree(tab.model_points[m]).query(
+                c["coords"][0][fg] * dia)[0]
+            assert np.median(near) < 0.01
+
+
+def test_symmetry_targets_are_the_coordinates_under_each_equivalent_pose():
+    rng = np.random.default_rng(0)
+    S = np.tile(np.eye(4), (2, 1, 1))
+    S[1, :3, :3] = Rotation.from_euler("z", 180, degrees=True).as_matrix()
+    S[1, :3, 3] = [0.01, 0.0, 0.0]
+    R, t, dia = Rotation.random(random_state=rng).as_matrix(), np.array([0.0, 0.1, 0.8]), 0.2
+    x = rng.normal(size=(50, 3)) * 0.05
+    p = x @ R.T + t
+    tg = symmetry_targets(model_coordinates(p, R, t, dia), S, dia)
+    assert np.allclose(tg[0] * dia, x, atol=1e-6)
+    # under the equivalent pose T @ S the same camera points have the coordinates tg[1]
+    R2, t2 = R @ S[1, :3, :3], R @ S[1, :3, 3] + t
+    assert np.allclose((tg[1] * dia) @ R2.T + t2, p, atol=1e-6)
+
+
+def test_roll_about_the_ray_keeps_the_centre_and_model_coordinates():
+    rng = np.random.default_rng(1)
+    R, t = Rotation.random(random_state=rng).as_matrix(), np.array([0.1, -0.05, 0.9])
+    x = rng.normal(size=(40, 3)) * 0.05
+    p = x @ R.T + t
+    q, Q = roll_about_ray(p, t, 0.7)
+    assert np.allclose(Q @ t / np.linalg.norm(t), t / np.linalg.norm(t))  # the ray is the axis
+    # the rolled points are the same model points under the rolled pose
+    assert np.allclose(model_coordinates(q, Q @ R, Q @ (t - t) + t, 1.0), x, atol=1e-6)
+
+
+def test_ransac_kabsch_recovers_a_pose_with_half_outliers():
+    rng = np.random.default_rng(2)
+    for _ in range(5):
+        R, t = Rotation.random(random_state=rng).as_matrix(), rng.normal(size=3)
+        m = rng.normal(size=(200, 3)) * 0.05
+        p = m @ R.T + t + rng.normal(0, 0.001, (200, 3))
+        bad = rng.random(200) < 0.5
+        p[bad] = t + rng.normal(size=(bad.sum(), 3)) * 0.05
+        Re, te, inl = ransac_kabsch(m, p, np.ones(200), 0.01, rng)
+        assert np.degrees(np.arccos(np.clip((np.trace(Re.T @ R) - 1) / 2, -1, 1))) < 1.0
+        assert np.linalg.norm(te - t) < 0.002
+        assert np.array_equal(inl, ~bad)
+    Rb, tb = kabsch_batch(m[None, :3].repeat(4, 0), p[None, :3].repeat(4, 0))
+    assert np.allclose(np.linalg.det(Rb), 1.0)
+
+
+def test_crop_loss_takes_the_best_symmetry_and_ignores_padding():
+    torch.manual_seed(0)
+    coords = torch.randn(2, 3, 10, 3)
+    fg = torch.ones(2, 10)
+    mask = torch.tensor([[True, True, False], [True, False, False]])
+    out = {"fg_logit": torch.full((2, 10), 20.0), "coords": coords[:, 1].clone()}
+    out["coords"][1] = coords[1, 0]  # crop 1 predicts its only real symmetry exactly
+    _, parts = crop_loss(out, fg, coords, mask)
+    assert parts["coord"] < 1e-6  # crop 0 matches its 2nd symmetry, crop 1 its 1st
+    out["coords"][0] = coords[0, 2]  # the padded 3rd symmetry does not count
+    _, parts = crop_loss(out, fg, coords, mask)
+    assert parts["coord"] > 0.1
+
+
+def test_crop_dataset_items_and_a_few_steps_lower_the_loss(labels):
+    cfg = CropConfig(num_points=128)
+    ds = CropDataset(labels, cfg, augment=True, seed=0)
+    a, b = ds[(0, 1)], ds[(0, 1)]
+    assert all(torch.equal(a[k], b[k]) for k in a)  # deterministic per (epoch, frame)
+    assert not torch.equal(ds[(1, 1)]["features"], a["features"])
+    batch = collate_crops([ds[(0, i)] for i in range(len(ds))])
+    c = len(batch["cls"])
+    assert c >= 4 and batch["features"].shape == (c, 128, 9) and batch["coords"].shape[:3] == (c, ds.max_sym, 128)
+    assert batch["sym_mask"][:, 0].all()
+    torch.manual_seed(0)
+    net = CropNet(CropNetConfig(width=32, edge_width=32, global_width=64, head_width=64, k=8), len(ds.class_ids))
+    opt = torch.optim.Adam(net.parameters(), lr=3e-3)
+    losses = []
+    for _ in range(40):
+        out = net(batch["features"], batch["cls"])
+        loss, _ = crop_loss(out, batch["fg"], batch["coords"], batch["sym_mask"])
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+        losses.append(float(loss.detach()))
+    assert losses[-1] < 0.5 * losses[0]
+
+
+# ---------------------------------------------------------------------- the two-stage model end to end (CLI)
+
+
+def tiny_two_stage_args(s1_steps: int = 2, s2_steps: int = 3) -> list[str]:
+    from test_data import TINY_MODEL
+
+    args = ["--quiet", "--set", f"stage1.steps={s1_steps}", "--set", "stage1.num_points=1024",
+            "--set", "stage1.batch_size=2", "--set", "stage1.num_workers=0", "--set", "stage1.warmup_steps=1",
+            "--set", f"stage2.steps={s2_steps}", "--set", "stage2.num_workers=0", "--set", "stage2.batch_frames=2",
+            "--set", "stage2.warmup_steps=1", "--set", "stage2.crop.num_points=64", "--set", "stage2.net.width=16",
+            "--set", "stage2.net.edge_width=16", "--set", "stage2.net.global_width=32",
+            "--set", "stage2.net.head_width=32", "--set", "stage2.net.k=8"]
+    for k, v in TINY_MODEL.items():
+        args += ["--set", f"stage1.model.{k}={v}"]
+    return args
+
+
+def test_two_stage_train_resume_eval_predict(labels, tmp_path):
+    """The default `detector train` trains both stages into one model file that eval and predict take, with the
+    model's own threshold; stage 2 resumes where it stopped; a stage-2 run file alone is refused clearly."""
+    import json
+
+    from detector.checkpoint import load_checkpoint
+    from detector.cli import app as det_app
+
+    run = CliRunner()
+    out = tmp_path / "run"
+    r = run.invoke(det_app, ["train", str(labels), "--out", str(out), *tiny_two_stage_args(2, 3)])
+    assert r.exit_code == 0, r.output
+    assert (out / "model.pt").is_file() and (out / "detect" / "last.pt").is_file() and (out / "pose" / "last.pt").is_file()
+    ck = load_checkpoint(out / "model.pt")
+    assert ck.pose_net is not None and ck.pose_config["centre_votes"] and ck.pose_config["tau"] == 0.3
+    assert ck.pose["class_ids"] == ck.class_ids
+    # more stage-2 steps: resume continues stage 2 only (stage 1 is complete)
+    two = (out / "two_stage.yaml").read_text().replace("steps: 3", "steps: 5")
+    (out / "two_stage.yaml").write_text(two)
+    r = run.invoke(det_app, ["train", str(labels), "--out", str(out), "--resume", "--quiet"])
+    assert r.exit_code == 0, r.output
+    rows = (out / "pose" / "metrics.csv").read_text().strip().splitlines()[1:]
+    assert [int(x.split(",")[0]) for x in rows] == [1, 2, 3, 4, 5]
+    assert len((out / "detect" / "metrics.csv").read_text().strip().splitlines()) == 3
+    # eval and predict with the model's defaults
+    rep = tmp_path / "rep"
+    r = run.invoke(det_app, ["eval", str(out / "model.pt"), str(labels), "--out", str(rep), "--icp", "--quiet",
+                             "--frames", "2"])
+    assert r.exit_code == 0, r.output
+    s = json.loads((rep / "report.json").read_text())
+    assert s["config"]["centre_votes"] and s["config"]["tau"] == 0.3 and "stage2" in s["timing_ms"]
+    ds = labels.parent / "ds" / "train_pbr" / "000000" / "000001"
+    r = run.invoke(det_app, ["predict", str(out / "model.pt"), str(ds), "--out", str(tmp_path / "pred"), "--icp"])
+    assert r.exit_code == 0, r.output
+    assert (tmp_path / "pred" / "poses.png").is_file()
+    # a stage-2 run's own last.pt is not a model
+    r = run.invoke(det_app, ["eval", str(out / "pose" / "last.pt"), str(labels), "--out", str(rep)])
+    assert r.exit_code == 2 and "model.pt" in r.stderr
+
+
+class TrueCropNet(torch.nn.Module):
+    """The crop network's contract filled in from the ground truth: foreground = the points of the instance under
+    the crop centre, coordinates = their model coordinates (checks everything of stage 2 but the learning)."""
+
+    def __init__(self, frame, table, class_ids, crop_cfg):
+        super().__init__()
+        self.frame, self.table, self.class_ids, self.cfg = frame, table, class_ids, crop_cfg
+
+    def forward(self, features, cls):
+        from scipy.spatial import cKDTree
+
+        f, inst = self.frame, self.frame.instances
+        xyz = f.features[:, :3].astype(np.float64)
+        tree = cKDTree(xyz)
+        logits, coords = [], []
+        for k in range(len(cls)):
+            oid = self.class_ids[int(cls[k])]
+            m = self.table.index(oid)
+            dia = float(self.table.diameters[m])
+            rel = features[k, :, :3].double().numpy() * self.cfg.radius * dia  # p - centre, exactly up to float32
+            # the centre: the frame point p with p - rel[0] + rel[1] and + rel[2] also frame points
+            cand = xyz - rel[0]
+            for r in rel[1:3]:
+                cand = cand[tree.query(cand + r)[0] < 1e-5]
+            c = cand[0]
+            j = tree.query(rel + c)[1]
+            g = min((g for g in range(len(inst)) if inst.obj_id[g] == oid),
+                    key=lambda g: np.linalg.norm(inst.control_points[g][8] - c))
+            fg = f.instance[j] == g
+            logits.append(torch.from_numpy(np.where(fg, 20.0, -20.0)))
+            coords.append(torch.from_numpy(model_coordinates(xyz[j], inst.R[g], inst.t[g], dia).astype(np.float64)))
+        return {"fg_logit": torch.stack(logits).float(), "coords": torch.stack(coords).float()}
+
+
+def test_crop_poser_with_true_crop_labels_gives_exact_poses(labels):
+    """Stage 2 on true foreground and coordinates, from centres 1.5 cm off: every pose within 2 % of the diameter."""
+    from detector.infer import CropPoser
+    from detector.metrics import pose_error
+    from detector.pose import Detection, ObjectInfo
+
+    cfg = CropConfig(num_points=256)
+    rng = np.random.default_rng(3)
+    with LabelFile(labels) as lf:
+        tab = lf.objects
+        objs = ObjectInfo.from_table(tab)
+        ids = [int(i) for i in tab.ids]
+        checked = 0
+        for i in range(lf.num_frames):
+            f = lf.frame(i)
+            inst = f.instances
+            poser = CropPoser(TrueCropNet(f, tab, ids, cfg), ids, objs, cfg, NORMALISATION)
+            dets = []
+            for g in range(len(inst)):
+                if inst.num_points[g] < 100 or tab.symmetric[tab.index(int(inst.obj_id[g]))]:
+                    continue
+                c = inst.control_points[g][8] + rng.normal(0, 0.015 / np.sqrt(3), 3)
+                oid = int(inst.obj_id[g])
+                cps = objs.control_points[oid] + (c - objs.control_points[oid][8])
+                dets.append((g, Detection(oid, 1.0, np.eye(3), c - objs.control_points[oid][8], 10, cps,
+                                          np.arange(3))))
+            out = poser([d for _, d in dets], f.features)
+            assert len(out) == len(dets)
+            for (g, _), d in zip(dets, out):
+                m = tab.index(d.obj_id)
+                e = pose_error(tab.model_points[m], False, inst.R[g], inst.t[g], d.R, d.t)
+                assert e < 0.02 * tab.diameters[m], (i, g, e)
+                assert d.points is not None and np.all(f.instance[d.points] == g)
+                checked += 1
+    assert checked >= 4
