@@ -111,13 +111,17 @@ def estimate(preds: Predictions, objects: ObjectInfo, cfg: PoseConfig, timings: 
     cloud: (M,3) metres, the frame's full point cloud, for ICP (see :func:`detector.pose.refine`); None: the
     predicted points only. poser: a two-stage model's stage 2 (:class:`detector.infer.CropPoser`), called with
     the stage-1 detections and ``features`` (M,9), the frame's points whose xyz is ``cloud``; its detections are
-    suppressed again (two crops may settle on one object) and ``cfg.min_score`` drops the weak ones.
+    suppressed again (two crops may settle on one object). ``cfg.min_score`` then drops the weak refined
+    detections (by their score after ICP, recomputed there for a two-stage detection) and
+    ``cfg.min_score_unrefined`` the weak unrefined ones.
     """
     dets = detect(preds.xyz, preds.obj_ids, preds.confidence, preds.control_points, objects, cfg, timings)
     if poser is not None:
         dets = nms(poser(dets, features, timings), objects.diameters, cfg.nms_fraction)
-    dets = [d for d in dets if d.score >= cfg.min_score]
-    return dets, (refine(dets, preds.xyz, objects, cfg, timings, cloud) if cfg.icp else None)
+    refined = refine(dets, preds.xyz, objects, cfg, timings, cloud) if cfg.icp else None
+    lo = cfg.min_score if cfg.min_score_unrefined is None else cfg.min_score_unrefined
+    return ([d for d in dets if d.score >= lo],
+            [d for d in refined if d.score >= cfg.min_score] if refined is not None else None)
 
 
 def error_matrix(dets: list[Detection], frame, table) -> np.ndarray:

@@ -14,7 +14,7 @@ import numpy as np
 import torch
 
 from detector.crops import CropConfig, ball_rows, crop_input, sample_crop
-from detector.pose import Detection, fit_residuals, fit_rms, ransac_kabsch
+from detector.pose import Detection, fit_residuals, fit_rms, ransac_kabsch, surface_support
 
 
 @dataclass
@@ -98,11 +98,15 @@ class CropPoser:
     normalisation of the network input. Calling it with (detections, features (N,9), timings) returns the
     detections with stage-2 poses, scores ``stage-1 score x crop score`` and ``points`` = the crop's foreground
     rows of ``features`` (ICP uses them). A detection whose crop yields no pose is dropped. Adds "stage2" seconds.
+    The score is the share of the foreground points that the model surface under the pose explains to within
+    ``support_distance`` of the diameter (:func:`detector.pose.surface_support`): it tells wrong poses and false
+    detections from right ones far better than vote or inlier shares (measured on a validation capture).
     """
 
     def __init__(self, net, class_ids: list[int], objects, crop_cfg: CropConfig, normalisation: dict,
-                 cfg: CropPoseConfig | None = None, device="cpu", seed: int = 0):
+                 cfg: CropPoseConfig | None = None, device="cpu", seed: int = 0, support_distance: float = 0.02):
         self.net, self.class_ids, self.objects = net, list(class_ids), objects
+        self.support_distance = support_distance
         self.crop_cfg, self.normalisation, self.cfg = crop_cfg, normalisation, cfg or CropPoseConfig()
         self.device, self.seed = device, seed
 
@@ -145,9 +149,11 @@ class CropPoser:
         for d, r in zip(dets, results):
             if r is None:
                 continue
-            R, t, score, fg = r
+            R, t, _, fg = r
+            tree, normals = self.objects.surface(d.obj_id)
+            score = surface_support(xyz[fg], tree, normals, R, t, self.support_distance * self.objects.diameters[d.obj_id])
             cps = self.objects.control_points[d.obj_id] @ R.T + t
-            out.append(replace(d, R=R, t=t, score=float(d.score * score), control_points=cps, points=fg))
+            out.append(replace(d, R=R, t=t, score=score, control_points=cps, points=fg))
         if timings is not None:
             timings["stage2"] = timings.get("stage2", 0.0) + time.perf_counter() - t0
         return out

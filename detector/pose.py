@@ -43,7 +43,11 @@ class PoseConfig:
     within this distance are all that detection's members (ICP points);
     centre_votes: instances from the box-centre votes alone (a two-stage model's stage 1, whose corners are
     not trained): the detection's centre is their robust mean and its orientation is left to stage 2;
-    min_score: detections scoring less are dropped (after stage 2, before ICP).
+    min_score: final detections scoring less are dropped (with ICP, by their score after ICP);
+    min_score_unrefined: the threshold of the unrefined detections (None: ``min_score``); a two-stage detection's
+    support before ICP is lower than after it, so the two get thresholds of their own; support_distance: a two-stage detection's
+    score is the share of its points within this fraction of the diameter of the model surface under its pose
+    (:func:`surface_support`), recomputed after ICP.
     """
 
     tau: float = 0.8
@@ -58,10 +62,12 @@ class PoseConfig:
     icp_min_points: int = 30
     icp_trim: float = 0.7
     icp_gate: float = 0.05
+    support_distance: float = 0.02
     propagate: float = 0.01
     owner_votes: int = 3
     centre_votes: bool = False
     min_score: float = 0.0
+    min_score_unrefined: float | None = None
 
 
 @dataclass
@@ -297,6 +303,16 @@ def fit_rms(residuals: np.ndarray, trim: float) -> float:
     return float(np.sqrt(np.mean(r[:k] ** 2))) if k else float("inf")
 
 
+def surface_support(points: np.ndarray, model_tree, model_normals: np.ndarray, R: np.ndarray, t: np.ndarray,
+                    distance: float) -> float:
+    """Share of the points (S,3) camera frame, metres, within ``distance`` metres of the model surface under
+    (R, t) (point-to-plane, see :func:`fit_residuals`): how well a pose explains a detection's own points.
+    0 for no points."""
+    if len(points) == 0:
+        return 0.0
+    return float(np.mean(fit_residuals(points, model_tree, model_normals, R, t, 2.5 * distance) < distance))
+
+
 @dataclass
 class ObjectInfo:
     """What the pose stage needs of each object, by obj_id.
@@ -446,7 +462,11 @@ def refine(detections: list[Detection], xyz: np.ndarray, objects: ObjectInfo, cf
             out.append(replace(d, icp="skipped"))
             continue
         R, t, ok, rms = refine_pose(pts, d.obj_id, d.R, d.t, objects, cfg)
-        out.append(replace(d, R=R, t=t, refined=ok, icp="accepted" if ok else "rejected", fit_rms=rms))
+        score = d.score
+        if d.points is not None:  # a two-stage detection: its score is the support of its points, at the new pose
+            tree, normals = objects.surface(d.obj_id)
+            score = surface_support(pts, tree, normals, R, t, cfg.support_distance * objects.diameters[d.obj_id])
+        out.append(replace(d, R=R, t=t, score=score, refined=ok, icp="accepted" if ok else "rejected", fit_rms=rms))
     if timings is not None:
         timings["icp"] = timings.get("icp", 0.0) + time.perf_counter() - t0
     return out

@@ -293,5 +293,6 @@ def checkpoint_poser(ckpt, objects: ObjectInfo, device: str = "cpu", seed: int =
     from detector.infer import CropPoseConfig, CropPoser
 
     p = ckpt.pose
+    support = float(ckpt.pose_config.get("support_distance", PoseConfig.support_distance))
     return CropPoser(ckpt.pose_net, p["class_ids"], objects, CropConfig.from_dict(p["crop_config"]),
-                     p["normalisation"], CropPoseConfig(**(p.get("infer_config") or {})), device, seed)
+                     p["normalisation"], CropPoseConfig(**(p.get("infer_config") or {})), device, seed, support)

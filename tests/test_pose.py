@@ -256,3 +256,18 @@ def test_report_counts_icp_decisions():
 
     dets = [replace(d, icp="accepted"), replace(d, icp="rejected"), replace(d, icp="rejected"), replace(d, icp="skipped")]
     assert icp_counts(dets) == {"accepted": 1, "rejected": 2, "skipped": 1}
+
+
+def test_surface_support_is_high_for_the_right_pose_only():
+    from detector.pose import surface_support
+
+    rng = np.random.default_rng(21)
+    obj, model, R, t, surf, table = resting_scene("drill", rng)
+    objs = ObjectInfo({1: obj.control_points}, {1: obj.diameter}, {1: model})
+    tree, normals = objs.surface(1)
+    d = 0.02 * obj.diameter
+    assert surface_support(surf, tree, normals, R, t, d) > 0.9
+    R_off = Rotation.from_rotvec([0.0, 0.0, np.radians(30)]).as_matrix() @ R
+    assert surface_support(surf, tree, normals, R_off, t, d) < 0.6
+    assert surface_support(table, tree, normals, R, t, d) < 0.3  # the table is not the drill
+    assert surface_support(np.zeros((0, 3)), tree, normals, R, t, d) == 0.0
