@@ -269,11 +269,30 @@ class FrameCamera:
 
 @dataclass
 class FrameGT:
-    """One ground-truth instance. R: (3,3) model->camera; t: (3,) metres."""
+    """One ground-truth instance. R: (3,3) model->camera, a proper rotation; t: (3,) metres; R_correction: the
+    largest entry change that projecting the file's rotation onto SO(3) made (:func:`rotation_from_bop`)."""
 
     obj_id: int
     R: np.ndarray
     t: np.ndarray
+    R_correction: float = 0.0
+
+
+def rotation_from_bop(values, where: str = "rotation") -> tuple[np.ndarray, float]:
+    """A BOP rotation (9 row-major values) as the nearest proper rotation, and how much that changed it.
+
+    BOP files store rotations to about 8 digits and real ground truth is not exactly orthonormal (LM-O's driller:
+    det 1.0029, |R R^T - I| up to 2e-3), so every rotation read from a BOP file passes here: SVD projection onto
+    SO(3) (``U V^T`` with the sign of the determinant fixed). Returns R (3,3) float64 and the largest absolute
+    entry change. A reflection or a degenerate matrix is an ArgenError.
+    """
+    M = np.asarray(values, float).reshape(3, 3)
+    U, sv, Vt = np.linalg.svd(M)
+    if sv.min() < 0.5 or np.linalg.det(M) <= 0:
+        raise ArgenError(f"{where}: not a rotation (singular values {np.round(sv, 4).tolist()}, det "
+                         f"{np.linalg.det(M):.4f})")
+    R = U @ Vt
+    return R, float(np.abs(R - M).max())
 
 
 def _scene_json(path: Path, what: str) -> dict:
@@ -292,7 +311,7 @@ def parse_scene_camera(data: dict, where: str) -> dict[int, FrameCamera]:
             T = None
             if "cam_R_w2c" in e and "cam_t_w2c" in e:
                 T = np.eye(4)
-                T[:3, :3] = np.array(e["cam_R_w2c"], float).reshape(3, 3)
+                T[:3, :3] = rotation_from_bop(e["cam_R_w2c"], f"{where}: image '{key}' cam_R_w2c")[0]
                 T[:3, 3] = np.array(e["cam_t_w2c"], float).reshape(3) / MM_PER_M
             out[int(key)] = FrameCamera(K, float(e.get("depth_scale", 1.0)), T)
         except (KeyError, TypeError, ValueError) as exc:
@@ -305,11 +324,11 @@ def parse_scene_gt(data: dict, where: str) -> dict[int, list[FrameGT]]:
     out = {}
     for key, items in data.items():
         try:
-            out[int(key)] = [
-                FrameGT(int(g["obj_id"]), np.array(g["cam_R_m2c"], float).reshape(3, 3),
-                        np.array(g["cam_t_m2c"], float).reshape(3) / MM_PER_M)
-                for g in items
-            ]
+            gts = []
+            for g in items:
+                R, corr = rotation_from_bop(g["cam_R_m2c"], f"{where}: image '{key}' cam_R_m2c")
+                gts.append(FrameGT(int(g["obj_id"]), R, np.array(g["cam_t_m2c"], float).reshape(3) / MM_PER_M, corr))
+            out[int(key)] = gts
         except (KeyError, TypeError, ValueError) as exc:
             raise ArgenError(f"{where}: image '{key}' is malformed ({exc.__class__.__name__}: {exc})") from exc
     return out
@@ -325,6 +344,11 @@ class BopScene:
     cameras: dict[int, FrameCamera]
     gts: dict[int, list[FrameGT]]
     gt_infos: dict[int, list[dict]]
+
+    @property
+    def max_rotation_correction(self) -> float:
+        """The largest entry change that projecting this scene's ground-truth rotations onto SO(3) made."""
+        return max((g.R_correction for gts in self.gts.values() for g in gts), default=0.0)
 
     @property
     def im_ids(self) -> list[int]:

@@ -4,6 +4,11 @@ Opening checks the schema (argen.h5.LabelFile); then the objects table and every
 finite features in the working volume, points on their pixel's ray, unit normals facing the camera,
 colours in [0, 1], semantic = the instance's object id, instance rows in range, per-instance point
 counts, rotations orthonormal, control points = R corners + t with the box centre last.
+
+Rotation tolerance (:data:`ROT_TOL`): every rotation that argen reads from a BOP file is projected onto SO(3)
+(``argen.bop.rotation_from_bop``; real BOP ground truth is off by up to about 2e-3), so a label file's rotations
+are exact up to their float32 storage (about 1e-7). 1e-4 leaves room for that rounding and still catches any
+rotation that was not projected.
 """
 
 from __future__ import annotations
@@ -15,6 +20,7 @@ import numpy as np
 from argen.h5 import FrameLabels, LabelFile, ObjectTable
 
 CP_TOL = 1e-5  # metres: float32 rounding of R c + t at a few metres
+ROT_TOL = 1e-4  # |R R^T - I|, see the module docstring
 RAY_TOL = 0.05  # pixels: a point must project back onto its pixel
 UNIT_TOL = 1e-3
 
@@ -88,7 +94,7 @@ def check_frame(fr: FrameLabels, objects: ObjectTable, max_points: int, max_dept
         if not np.all(known):
             return errs + [f"instance object id(s) {sorted(set(it.obj_id[~known].tolist()))} not in the objects table"]
         R = it.R.astype(np.float64)
-        if np.abs(R @ R.transpose(0, 2, 1) - np.eye(3)).max() > 1e-4 or np.any(np.linalg.det(R) < 0):
+        if np.abs(R @ R.transpose(0, 2, 1) - np.eye(3)).max() > ROT_TOL or np.any(np.linalg.det(R) < 0):
             errs.append("instance rotation not orthonormal")
         rows = np.array([objects.index(i) for i in it.obj_id])
         cps = objects.control_points[rows].astype(np.float64) @ R.transpose(0, 2, 1) + it.t[:, None, :]

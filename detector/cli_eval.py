@@ -26,6 +26,11 @@ def register(app: typer.Typer) -> None:
                                                   help="Drop detections scoring less (default: the model's own)."),
         min_visib: float = typer.Option(0.1, "--min-visib", help="Ignore instances less visible than this."),
         frames: Optional[int] = typer.Option(None, "--frames", help="Evaluate only the first N frames."),
+        method: str = typer.Option("argen", "--method", help="Method name of the BOP results file "
+                                                              "METHOD_DATASET-SPLIT.csv (letters and digits)."),
+        dataset_name: Optional[str] = typer.Option(None, "--dataset-name",
+                                                   help="Dataset name of the BOP results file (default: the "
+                                                        "label file's dataset folder, letters and digits only)."),
         device: str = typer.Option("cpu", "--device", help="torch device, e.g. cpu or cuda."),
         seed: int = typer.Option(0, "--seed", help="Point sampling seed."),
         quiet: bool = typer.Option(False, "--quiet", help="No progress bar."),
@@ -43,7 +48,7 @@ def register(app: typer.Typer) -> None:
         poser = checkpoint_poser(ckpt, checkpoint_objects(ckpt)[0], device, seed)
         s = evaluate(network_predictor(ckpt, seed), data, out, icp=icp, cfg=cfg, device=device,
                      frames=list(range(min(n, frames) if frames else n)), min_visib=min_visib, progress=not quiet,
-                     poser=poser)
+                     poser=poser, method=method, dataset_name=dataset_name)
         key = "icp" if icp else "noicp"
         typer.echo(f"ADD@10%: {100 * s['mean'][key]['0.10']:.1f} %  F1@15%: {100 * s['f1'][key]['f1']:.1f} %  "
                    f"{s['fps']:.2f} frames/s  -> {out / 'report.md'}")

@@ -16,9 +16,10 @@ import numpy as np
 
 from detector.metrics import THRESHOLDS, accuracy, accuracy_curve, match_frame, pose_error, prf
 from detector.pose import Detection, ObjectInfo, PoseConfig, detect, icp_counts, nms, refine
-from detector.report import STAGES, bop_row, write_report
+from detector.report import STAGES, bop_csv_name, bop_row, default_dataset_name, write_report
 
-BOP_CSV = "results_bop.csv"
+#: The default method name of the BOP results file (``METHOD_DATASET-SPLIT.csv``).
+METHOD = "argen"
 
 
 @dataclass
@@ -143,11 +144,14 @@ def _summary_for(rows: list[dict], key: str, k_list=THRESHOLDS) -> dict:
 
 def evaluate(predictor: Predictor, label_path: str | Path, out_dir: str | Path, icp: bool = False,
              cfg: PoseConfig | None = None, frames: list[int] | None = None, min_visib: float = 0.1,
-             device: str = "cpu", progress: bool = False, poser=None) -> dict:
+             device: str = "cpu", progress: bool = False, poser=None, method: str = METHOD,
+             dataset_name: str | None = None) -> dict:
     """Evaluate ``predictor`` on a label file and write the report into ``out_dir``.
 
     Ground-truth instances with ``visib_fract < min_visib`` are ignored (neither missed nor matched). poser: a
-    two-stage model's stage 2 (see :func:`estimate`).
+    two-stage model's stage 2 (see :func:`estimate`). The BOP results file is ``METHOD_DATASET-SPLIT.csv``
+    (:func:`detector.report.bop_csv_name`): ``method``, ``dataset_name`` (default: the label file's source dataset
+    folder name, letters and digits only) and the label file's source split.
     Returns the summary written to report.json (per-object ADD accuracies at 10/15/30 % without and with ICP,
     F1 at 15 %, mean ms per stage, fps, and with ICP how many detections had their ICP pose accepted, rejected
     (it did not fit better, so the unrefined pose was kept) or skipped (too few points): "icp_refinement").
@@ -159,6 +163,8 @@ def evaluate(predictor: Predictor, label_path: str | Path, out_dir: str | Path, 
     gt_rows, bop_rows, counts, times = [], [], {}, []
     icp_status = {"accepted": 0, "rejected": 0, "skipped": 0}
     with LabelFile(label_path) as lf:
+        csv_name = bop_csv_name(method, dataset_name or default_dataset_name(lf.attrs.get("source_dataset", "")),
+                                str(lf.attrs.get("source_split") or "test"))
         table = lf.objects
         objects = ObjectInfo.from_table(table)
         idx = range(lf.num_frames) if frames is None else frames
@@ -204,11 +210,11 @@ def evaluate(predictor: Predictor, label_path: str | Path, out_dir: str | Path, 
             bop_rows += [bop_row(frame.scene_id, frame.im_id, d.obj_id, d.score, d.R, d.t, frame_time) for d in final]
         num_frames = len(idx)
     return _finish(gt_rows, counts, times, table, cfg, keys, icp, str(label_path), num_frames, bop_rows, out_dir,
-                   device, icp_status if icp else None)
+                   device, icp_status if icp else None, csv_name)
 
 
 def _finish(gt_rows, counts, times, table, cfg, keys, icp, label_file, num_frames, bop_rows, out_dir, device,
-            icp_status=None) -> dict:
+            icp_status=None, csv_name="argen_argen-test.csv") -> dict:
     """Aggregate per-instance rows into the summary, write the report files and return the summary."""
     objs, curves = [], {}
     for m, oid in enumerate(table.ids.tolist()):
@@ -242,7 +248,7 @@ def _finish(gt_rows, counts, times, table, cfg, keys, icp, label_file, num_frame
     summary = {"label_file": label_file, "num_frames": num_frames, "icp": icp, "config": asdict(cfg),
                "objects": objs, "mean": mean, "f1": f1, "timing_ms": timing_ms,
                "fps": 1000.0 / timing_ms["total"] if timing_ms["total"] > 0 else float("inf"),
-               "device": device, "bop_csv": BOP_CSV, "icp_refinement": icp_status, "instances": gt_rows,
+               "device": device, "bop_csv": csv_name, "icp_refinement": icp_status, "instances": gt_rows,
                "curve": {name: {"k": ks.tolist(), "accuracy": acc.tolist()} for name, (ks, acc) in curves.items()}}
     write_report(Path(out_dir), summary, curves, bop_rows)
     return summary

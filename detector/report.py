@@ -27,6 +27,45 @@ def bop_row(scene_id: int, im_id: int, obj_id: int, score: float, R: np.ndarray,
             "time": f"{float(time_s):.6f}"}
 
 
+def bop_csv_name(method: str, dataset: str, split: str) -> str:
+    """The BOP results file name ``METHOD_DATASET-SPLIT[-SPLITTYPE].csv`` (the BOP toolkit's convention).
+
+    method, dataset: letters and digits only (BOP parses the name at ``_`` and ``-``); split: a BOP split folder
+    name such as ``test`` or ``train_pbr`` (written as ``train-pbr``: split ``train``, split type ``pbr``).
+    A name part the toolkit could not parse back is a DetectorError.
+    """
+    from detector.errors import DetectorError
+
+    parts = split.split("_")
+    for what, v in [("method", method), ("dataset name", dataset)] + [("split", x) for x in parts]:
+        if not v or not v.isalnum():
+            raise DetectorError(f"BOP results file: the {what} '{v}' must be letters and digits only "
+                                "(no '_' or '-': BOP splits the file name there)")
+    if len(parts) > 2:
+        raise DetectorError(f"BOP results file: split '{split}' has more than a split and a split type")
+    return f"{method}_{dataset}-{'-'.join(parts)}.csv"
+
+
+def parse_bop_csv_name(name: str) -> dict[str, str | None]:
+    """The parts of a BOP results file name: {"method", "dataset", "split", "split_type"} (split_type None when
+    absent), read the way the BOP toolkit reads them. A name it could not parse is a ValueError."""
+    stem = Path(name).name
+    if not stem.endswith(".csv") or stem.count("_") != 1:
+        raise ValueError(f"not a BOP results file name: {name}")
+    method, rest = stem[:-4].split("_")
+    info = rest.split("-")
+    if len(info) not in (2, 3) or not method or not all(info):
+        raise ValueError(f"not a BOP results file name: {name}")
+    return {"method": method, "dataset": info[0], "split": info[1], "split_type": info[2] if len(info) == 3 else None}
+
+
+def default_dataset_name(source_dataset: str) -> str:
+    """A BOP dataset name from a label file's source dataset folder: its name with everything but letters and
+    digits removed (``data/lm_test`` -> ``lmtest``); ``argen`` when nothing is left."""
+    name = "".join(c for c in Path(str(source_dataset)).name if c.isalnum())
+    return name or "argen"
+
+
 def write_bop_csv(path: Path, rows: list[dict]) -> Path:
     """Write BOP results rows (see :func:`bop_row`) with the BOP header."""
     path = Path(path)

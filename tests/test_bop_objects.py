@@ -124,3 +124,55 @@ def test_corrupt_scene_json_is_a_clear_error(tmp_path):
     (d / "scene_camera.json").write_text('{"0": {"cam_K": [1, 2]}}')
     with pytest.raises(ArgenError, match="malformed"):
         bop.load_scene(tmp_path, "test", 0)
+
+
+def test_bop_rotations_are_projected_onto_so3_and_the_correction_recorded():
+    """Real BOP ground truth is not exactly orthonormal (LM-O's driller: det 1.0029); reading projects it."""
+    import numpy as np
+    import pytest
+    from scipy.spatial.transform import Rotation
+
+    from argen import bop
+    from argen.errors import ArgenError
+
+    R = Rotation.from_euler("xyz", [20, -35, 110], degrees=True).as_matrix()
+    raw = np.round(R * 1.001 + np.array([[0, 1e-3, 0], [0, 0, 0], [0, 0, 0]]), 8)  # det about 1.003, 8 digits
+    assert abs(np.linalg.det(raw) - 1) > 2e-3
+    gts = bop.parse_scene_gt({"0": [{"obj_id": 1, "cam_R_m2c": raw.reshape(-1).tolist(),
+                                      "cam_t_m2c": [0, 0, 800]}]}, "scene_gt.json")
+    g = gts[0][0]
+    assert np.abs(g.R @ g.R.T - np.eye(3)).max() < 1e-12 and np.linalg.det(g.R) == pytest.approx(1.0)
+    assert np.abs(g.R - R).max() < 2e-3 and g.R_correction == pytest.approx(np.abs(g.R - raw).max())
+    assert 5e-4 < g.R_correction < 3e-3
+    exact = bop.parse_scene_gt({"0": [{"obj_id": 1, "cam_R_m2c": np.round(R, 8).reshape(-1).tolist(),
+                                        "cam_t_m2c": [0, 0, 800]}]}, "scene_gt.json")[0][0]
+    assert exact.R_correction < 1e-7
+    with pytest.raises(ArgenError, match="not a rotation"):
+        bop.rotation_from_bop((R @ np.diag([1, 1, -1])).reshape(-1), "test")
+
+
+def test_labels_of_bop_rotations_stored_like_real_ground_truth_validate(tmp_path):
+    """A dataset whose scene_gt rotations are off SO(3) as real BOP files are labels into a file that validates."""
+    import json
+
+    import numpy as np
+    from typer.testing import CliRunner
+
+    from argen.cli import app
+    from argen.label import LabelConfig, LabelRequest, run_label
+    from argen.validate import validate_file
+
+    r = CliRunner().invoke(app, ["capture-sim", "--frames", "2", "--noise", "none", "--out", str(tmp_path / "ds"),
+                                 "--seed", "3", "--quiet"])
+    assert r.exit_code == 0, r.output
+    path = tmp_path / "ds" / "train_pbr" / "000000" / "scene_gt.json"
+    data = json.loads(path.read_text())
+    for items in data.values():
+        for g in items:
+            g["cam_R_m2c"] = np.round(np.asarray(g["cam_R_m2c"]) * 1.001, 8).tolist()  # det ~1.003
+    path.write_text(json.dumps(data))
+    out = tmp_path / "l.h5"
+    run_label(LabelRequest(dataset=tmp_path / "ds", split="train_pbr", out=out, progress=False,
+                           cfg=LabelConfig(max_points=5000)))
+    n, errs = validate_file(out)
+    assert n == 2 and errs == [], errs

@@ -11,7 +11,7 @@ from typer.testing import CliRunner
 from argen.cli import app as argen_app
 from argen.h5 import LabelFile
 from argen.label import LabelConfig, LabelRequest, run_label
-from detector.evaluate import BOP_CSV, Predictions, evaluate, oracle_predictor
+from detector.evaluate import Predictions, evaluate, oracle_predictor
 from detector.pose import PoseConfig
 from detector.report import read_bop_csv
 
@@ -44,7 +44,8 @@ def test_oracle_gives_full_add_accuracy(label_file, tmp_path):
     assert s["f1"]["noicp"]["f1"] == 1.0
     # the oracle poses are the ground truth: errors far below 1 mm, and the BOP CSV carries them (mm, row-major)
     assert max(r["noicp"] for r in s["instances"]) < 1e-4
-    rows = read_bop_csv(tmp_path / BOP_CSV)
+    assert s["bop_csv"] == "argen_ds-train-pbr.csv"  # METHOD_DATASET-SPLIT-SPLITTYPE.csv
+    rows = read_bop_csv(tmp_path / s["bop_csv"])
     with LabelFile(label_file) as lf:
         gts = [(f.scene_id, f.im_id, int(o), R, t) for f in lf.frames() for o, R, t in
                zip(f.instances.obj_id, f.instances.R, f.instances.t)]
@@ -228,9 +229,10 @@ def test_cli_eval_and_predict_with_a_random_network(random_checkpoint, dataset, 
     js = json.loads((tmp_path / "rep" / "report.json").read_text())
     assert js["num_frames"] == 1 and js["timing_ms"]["network"] > 0 and js["timing_ms"]["sampling"] > 0
     assert 0 <= js["mean"]["noicp"]["0.10"] <= 1
-    head = (tmp_path / "rep" / BOP_CSV).read_text().splitlines()[0]
+    csv_path = next((tmp_path / "rep").glob("*_*-*.csv"))
+    head = csv_path.read_text().splitlines()[0]
     assert head == "scene_id,im_id,obj_id,score,R,t,time"
-    for row in read_bop_csv(tmp_path / "rep" / BOP_CSV):  # any detections are proper rotations
+    for row in read_bop_csv(csv_path):  # any detections are proper rotations
         assert np.allclose(row["R"] @ row["R"].T, np.eye(3), atol=1e-5) and row["time"] > 0
     assert (tmp_path / "rep" / "curve.png").is_file() and (tmp_path / "rep" / "report.md").is_file()
 
@@ -295,5 +297,22 @@ def test_a_predictor_that_finds_nothing_scores_zero(label_file, tmp_path):
     s = evaluate(background, label_file, tmp_path, icp=True)
     assert s["mean"]["noicp"]["0.10"] == 0.0 and s["mean"]["icp"]["0.10"] == 0.0
     assert s["f1"]["icp"] == {"precision": 0.0, "recall": 0.0, "f1": 0.0, "num_det": 0, "num_gt": s["f1"]["icp"]["num_gt"]}
-    assert (tmp_path / BOP_CSV).read_text() == "scene_id,im_id,obj_id,score,R,t,time\n"
+    assert (tmp_path / s["bop_csv"]).read_text() == "scene_id,im_id,obj_id,score,R,t,time\n"
     assert json.loads((tmp_path / "report.json").read_text())["instances"][0]["noicp"] is None  # inf -> null
+
+
+def test_bop_results_file_name_round_trip():
+    """The BOP toolkit parses METHOD_DATASET-SPLIT[-SPLITTYPE].csv at '_' and '-': our names parse back."""
+    from detector.errors import DetectorError
+    from detector.report import bop_csv_name, default_dataset_name, parse_bop_csv_name
+
+    assert bop_csv_name("argen", "lm", "test") == "argen_lm-test.csv"
+    assert parse_bop_csv_name(bop_csv_name("argen", "lmtest", "train_pbr")) == {
+        "method": "argen", "dataset": "lmtest", "split": "train", "split_type": "pbr"}
+    assert parse_bop_csv_name("argen_lmo-test.csv")["split_type"] is None
+    assert default_dataset_name("data/lm_test") == "lmtest" and default_dataset_name("") == "argen"
+    for bad in [("my_method", "lm", "test"), ("argen", "lm-o", "test"), ("argen", "lm", "a_b_c"), ("", "lm", "test")]:
+        with pytest.raises(DetectorError):
+            bop_csv_name(*bad)
+    with pytest.raises(ValueError):
+        parse_bop_csv_name("results_bop_x.csv")
