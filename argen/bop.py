@@ -409,3 +409,47 @@ def load_scene(root: str | os.PathLike, split: str, scene_id: int) -> BopScene:
 def scene_camera_json(cameras: dict[int, dict]) -> dict:
     """Sorted, string-keyed dict for writing."""
     return {str(k): cameras[k] for k in sorted(cameras)}
+
+
+# ---------------------------------------------------------------------------------------- test targets
+
+#: The BOP19 test-target list at a dataset's root: the images and objects the BOP toolkit evaluates.
+TEST_TARGETS = "test_targets_bop19.json"
+
+
+def test_targets(root: str | os.PathLike, split: str, min_visib: float = 0.1) -> list[dict]:
+    """The BOP19 targets of a split: per image with ground truth and per object, how many of its instances are
+    at least ``min_visib`` visible (BOP's rule: 0.1), from each scene's scene_gt_info.json (scene_gt.json for the
+    object ids). Returns [{"im_id", "inst_count", "obj_id", "scene_id"}] sorted by scene, image, object; objects
+    with no instance that visible are left out."""
+    out = []
+    split_dir = Path(root) / split
+    for d in sorted(p for p in split_dir.iterdir() if p.is_dir() and p.name.isdigit()) if split_dir.is_dir() else []:
+        gt_p, info_p = d / "scene_gt.json", d / "scene_gt_info.json"
+        if not (gt_p.is_file() and info_p.is_file()):
+            continue
+        gts, infos = _scene_json(gt_p, "scene_gt.json"), _scene_json(info_p, "scene_gt_info.json")
+        for key in sorted(gts, key=int):
+            counts: dict[int, int] = {}
+            for g, info in zip(gts[key], infos.get(key, [])):
+                if float(info.get("visib_fract", 0.0)) >= min_visib:
+                    counts[int(g["obj_id"])] = counts.get(int(g["obj_id"]), 0) + 1
+            out += [{"im_id": int(key), "inst_count": n, "obj_id": o, "scene_id": int(d.name)}
+                    for o, n in sorted(counts.items())]
+    return out
+
+
+def save_test_targets(root: str | os.PathLike, split: str, min_visib: float = 0.1) -> Path:
+    """Write :func:`test_targets` of ``split`` as ``ROOT/test_targets_bop19.json`` (atomically)."""
+    path = Path(root) / TEST_TARGETS
+    write_json(path, test_targets(root, split, min_visib), indent=None)
+    return path
+
+
+def load_test_targets(path: str | os.PathLike) -> list[dict]:
+    """Read a ``test_targets_bop19.json``: [{"im_id", "inst_count", "obj_id", "scene_id"}] (ints)."""
+    data = read_json(Path(path), TEST_TARGETS)
+    try:
+        return [{k: int(e[k]) for k in ("im_id", "inst_count", "obj_id", "scene_id")} for e in data]
+    except (KeyError, TypeError, ValueError) as exc:
+        raise ArgenError(f"{path}: not a BOP test-target list ({exc.__class__.__name__}: {exc})") from None

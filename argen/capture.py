@@ -408,6 +408,7 @@ def run_capture(req: CaptureRequest, maker=None, kind: str = "capture-sim", extr
                 commit()
                 last_commit = time.perf_counter()
         commit()
+        bop.save_test_targets(req.out, req.cfg.output.split)  # BOP19 targets of all frames written so far
     finally:
         bar.close()
     return CaptureSummary(written, rejected, len(mine) - len(todo), time.perf_counter() - t_start, stage,

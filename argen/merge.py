@@ -15,6 +15,7 @@ import shutil
 from dataclasses import dataclass
 from pathlib import Path
 
+from argen import bop
 from argen.capture import SceneJsons
 from argen.errors import ArgenError
 from argen.fileio import read_json, write_json
@@ -116,6 +117,7 @@ def merge_captures(shard_dirs: list[Path], out: Path, overwrite: bool = False) -
                 if f.is_file() and f.suffix != ".json" and not f.name.startswith(".tmp-"):
                     _link_or_copy(f, tmp / split / scene_dir.name / f.relative_to(scene_dir))
     jsons.flush()
+    bop.save_test_targets(tmp, split)
     log = {}
     for s in shards:
         log.update(s.log)

@@ -176,3 +176,34 @@ def test_labels_of_bop_rotations_stored_like_real_ground_truth_validate(tmp_path
                            cfg=LabelConfig(max_points=5000)))
     n, errs = validate_file(out)
     assert n == 2 and errs == [], errs
+
+
+def test_capture_writes_the_bop19_test_targets_and_merge_keeps_them(tmp_path):
+    """test_targets_bop19.json lists, per image and object, the instances at least 10 % visible (BOP's rule)."""
+    import json
+
+    from typer.testing import CliRunner
+
+    from argen import bop
+    from argen.cli import app
+
+    run = CliRunner()
+    for i in (0, 1):
+        r = run.invoke(app, ["capture-sim", "--frames", "4", "--noise", "none", "--seed", "6", "--shard", f"{i}/2",
+                             "--out", str(tmp_path / f"s{i}"), "--quiet"])
+        assert r.exit_code == 0, r.output
+    r = run.invoke(app, ["merge", str(tmp_path / "s0"), str(tmp_path / "s1"), "--out", str(tmp_path / "all")])
+    assert r.exit_code == 0, r.output
+    targets = bop.load_test_targets(tmp_path / "all" / bop.TEST_TARGETS)
+    d = tmp_path / "all" / "train_pbr" / "000000"
+    gts, infos = (json.loads((d / f"{n}.json").read_text()) for n in ("scene_gt", "scene_gt_info"))
+    expect = {}
+    for key, items in gts.items():
+        for g, info in zip(items, infos[key]):
+            if info["visib_fract"] >= 0.1:
+                expect[(int(key), g["obj_id"])] = expect.get((int(key), g["obj_id"]), 0) + 1
+    assert {(t["im_id"], t["obj_id"]): t["inst_count"] for t in targets} == expect and expect
+    assert all(t["scene_id"] == 0 for t in targets)
+    # each shard lists its own frames; together they are the merged list
+    shard = [t for i in (0, 1) for t in bop.load_test_targets(tmp_path / f"s{i}" / bop.TEST_TARGETS)]
+    assert sorted(map(str, shard)) == sorted(map(str, targets))
