@@ -36,7 +36,7 @@ from argen.config import TemplateConfig, to_dict
 from argen.errors import ArgenError
 from argen.fileio import read_json, write_json
 from argen.noise import apply_noise
-from argen.objects import ObjectModel, write_models
+from argen.objects import ObjectModel, write_models, write_models_eval
 from argen.render import get_renderer
 from argen.scene import build_scene
 
@@ -261,15 +261,16 @@ def prepare_output(req: CaptureRequest, kind: str = "capture-sim", extra: dict |
                              "or choose another --out")
         _remove_ours(out, req.cfg.output.split)
     out.mkdir(parents=True, exist_ok=True)
+    meta = {"argen_version": __version__, "kind": kind, "template": req.cfg.name, "seed": req.cfg.seed,
+            "frames": req.frames, "split": req.cfg.output.split, "units": "BOP (mm)", **sig,
+            "object_names": {str(o.obj_id): o.name for o in req.objects}}
+    write_json(meta_p, meta)  # first: a run stopped while writing the models below resumes (they are rewritten)
     write_models(out / "models", req.objects)
+    write_models_eval(out / "models_eval", req.objects)
     cam = req.cfg.camera
     write_json(out / "camera.json", {"cx": cam.cx, "cy": cam.cy, "fx": cam.fx, "fy": cam.fy,
                                      "depth_scale": req.cfg.output.depth_scale,
                                      "width": cam.width, "height": cam.height})
-    meta = {"argen_version": __version__, "kind": kind, "template": req.cfg.name, "seed": req.cfg.seed,
-            "frames": req.frames, "split": req.cfg.output.split, "units": "BOP (mm)", **sig,
-            "object_names": {str(o.obj_id): o.name for o in req.objects}}
-    write_json(meta_p, meta)
     log_p = out / "capture_log.json"
     if log_p.is_file():
         log = read_json(log_p, "capture_log.json")
@@ -281,7 +282,7 @@ def _remove_ours(out: Path, split: str) -> None:
     """Remove what a capture wrote (never other files the user keeps there)."""
     for name in ("argen.json", "capture_log.json", "camera.json"):
         (out / name).unlink(missing_ok=True)
-    for name in ("models", split):
+    for name in ("models", "models_eval", split):
         if (out / name).is_dir():
             shutil.rmtree(out / name)
 

@@ -99,6 +99,8 @@ def merge_captures(shard_dirs: list[Path], out: Path, overwrite: bool = False) -
         shutil.rmtree(tmp)
     tmp.mkdir(parents=True)
     shutil.copytree(shards[0].root / "models", tmp / "models")
+    if (shards[0].root / "models_eval").is_dir():
+        shutil.copytree(shards[0].root / "models_eval", tmp / "models_eval")
     shutil.copyfile(shards[0].root / "camera.json", tmp / "camera.json")
     jsons = SceneJsons(tmp, split)
     for s in shards:

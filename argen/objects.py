@@ -285,8 +285,9 @@ def load_objects(models_dir: str | os.PathLike | None, select: list[str] | None 
     return objs
 
 
-def write_models(models_dir: str | os.PathLike, objects: list[ObjectModel]) -> None:
-    """Write the objects as a BOP models folder (PLY in mm, models_info.json, argen_names.json)."""
+def write_models(models_dir: str | os.PathLike, objects: list[ObjectModel], evaluation: bool = False) -> None:
+    """Write the objects as a BOP models folder (PLY in mm, models_info.json, argen_names.json); with
+    ``evaluation``, BOP's models_eval folder instead (:func:`eval_mesh` of each object, no names file)."""
     from argen.fileio import write_json
 
     d = Path(models_dir)
@@ -294,6 +295,26 @@ def write_models(models_dir: str | os.PathLike, objects: list[ObjectModel]) -> N
     for o in objects:
         p = bop.model_path(d, o.obj_id)
         if not p.exists():
-            bop.write_mesh(p, o.mesh)
+            bop.write_mesh(p, eval_mesh(o.mesh, o.diameter) if evaluation else o.mesh)
     bop.write_models_info(d / "models_info.json", {o.obj_id: o.info for o in objects})
-    write_json(d / NAMES_FILE, {str(o.obj_id): o.name for o in objects})
+    if not evaluation:
+        write_json(d / NAMES_FILE, {str(o.obj_id): o.name for o in objects})
+
+
+#: Largest edge of a models_eval mesh, as a fraction of the object's diameter.
+EVAL_EDGE = 0.02
+
+
+def eval_mesh(mesh: trimesh.Trimesh, diameter: float, edge: float = EVAL_EDGE) -> trimesh.Trimesh:
+    """The model resampled for evaluation (BOP's models_eval): the same surface with every face split until no
+    edge is longer than ``edge`` x ``diameter``, so that its vertices, which BOP's MSSD / MSPD errors are computed
+    on, cover the whole surface at least that densely (large flat faces included). Metres in, metres out;
+    colours are not kept (evaluation does not use them)."""
+    v, f = trimesh.remesh.subdivide_to_size(np.asarray(mesh.vertices), np.asarray(mesh.faces),
+                                            max_edge=edge * diameter, max_iter=20)
+    return trimesh.Trimesh(v, f, process=False)
+
+
+def write_models_eval(models_dir: str | os.PathLike, objects: list[ObjectModel]) -> None:
+    """Write BOP's ``models_eval`` folder: :func:`eval_mesh` of each object (PLY in mm) and models_info.json."""
+    write_models(models_dir, objects, evaluation=True)

@@ -207,3 +207,32 @@ def test_capture_writes_the_bop19_test_targets_and_merge_keeps_them(tmp_path):
     # each shard lists its own frames; together they are the merged list
     shard = [t for i in (0, 1) for t in bop.load_test_targets(tmp_path / f"s{i}" / bop.TEST_TARGETS)]
     assert sorted(map(str, shard)) == sorted(map(str, targets))
+
+
+def test_capture_writes_models_eval_resampled_on_the_model_surface(tmp_path):
+    """models_eval/ (what the BOP toolkit's MSSD / MSPD use): the same surface, no edge over 2 % of the diameter."""
+    import numpy as np
+    from typer.testing import CliRunner
+
+    from argen import bop
+    from argen.cli import app
+    from argen.objects import EVAL_EDGE, load_models
+
+    r = CliRunner().invoke(app, ["capture-sim", "--frames", "1", "--noise", "none", "--seed", "2",
+                                 "--out", str(tmp_path / "ds"), "--quiet"])
+    assert r.exit_code == 0, r.output
+    models = {o.obj_id: o for o in load_models(tmp_path / "ds" / "models")}
+    evals = {o.obj_id: o for o in load_models(tmp_path / "ds" / "models_eval")}
+    assert set(evals) == set(models)
+    for oid, o in models.items():
+        e = evals[oid]
+        assert e.info.diameter == o.info.diameter
+        edges = np.linalg.norm(np.diff(e.mesh.vertices[e.mesh.edges_unique], axis=1)[:, 0], axis=1)
+        assert edges.max() <= EVAL_EDGE * o.diameter * 1.0001
+        assert len(e.mesh.vertices) >= len(o.mesh.vertices)
+        # splitting faces keeps the surface: the same area, volume and bounds (PLY float32, mm)
+        assert abs(e.mesh.area - o.mesh.area) < 1e-4 * o.mesh.area
+        assert abs(abs(e.mesh.volume) - abs(o.mesh.volume)) < 1e-4 * abs(o.mesh.volume)
+        assert np.abs(e.mesh.bounds - o.mesh.bounds).max() < 1e-6
+    assert (tmp_path / "ds" / "models_eval" / "models_info.json").is_file()
+    assert bop.model_path(tmp_path / "ds" / "models_eval", 1).is_file()
