@@ -131,7 +131,8 @@ def model_path(models_dir: str | os.PathLike, obj_id: int) -> Path:
 
 
 def read_mesh(path: str | os.PathLike):
-    """Load a BOP PLY model (mm) as a ``trimesh.Trimesh`` in metres, keeping vertex colours."""
+    """Load a BOP PLY model (mm) as a ``trimesh.Trimesh`` in metres, keeping vertex colours and the file's vertex
+    normals (written back unchanged by :func:`write_mesh`; computed from the faces when the file has none)."""
     import trimesh
 
     path = Path(path)
@@ -140,7 +141,11 @@ def read_mesh(path: str | os.PathLike):
     if path.stat().st_size == 0:
         raise ArgenError(f"model file is empty: {path}")
     try:
-        mesh = trimesh.load(path, force="mesh", process=False)
+        with path.open("rb") as f:
+            kw = trimesh.exchange.ply.load_ply(f)
+        # built from the file's own arrays: trimesh.load recomputes the normals, so the source's were lost
+        mesh = trimesh.Trimesh(**{k: kw[k] for k in ("vertices", "faces", "vertex_normals", "vertex_colors",
+                                                     "face_colors") if kw.get(k) is not None}, process=False)
     except Exception as exc:  # trimesh raises many kinds on corrupt input
         raise ArgenError(f"cannot read model {path}: corrupt or not a PLY mesh ({exc.__class__.__name__})") from exc
     if not isinstance(mesh, trimesh.Trimesh) or len(mesh.faces) == 0 or len(mesh.vertices) < 4:
@@ -153,8 +158,10 @@ def read_mesh(path: str | os.PathLike):
 
 def write_mesh(path: str | os.PathLike, mesh) -> None:
     """Write a mesh given in metres as a binary BOP PLY in millimetres (with normals and colours)."""
+    normals = np.array(mesh.vertex_normals)  # the mesh's own (a source file's); Trimesh.copy would recompute them
     m = mesh.copy()
     m.apply_scale(MM_PER_M)
+    m.vertex_normals = normals
     data = m.export(file_type="ply", encoding="binary", vertex_normal=True)
     with atomic_path(path) as tmp:
         Path(tmp).write_bytes(data)

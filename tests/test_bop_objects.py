@@ -236,3 +236,29 @@ def test_capture_writes_models_eval_resampled_on_the_model_surface(tmp_path):
         assert np.abs(e.mesh.bounds - o.mesh.bounds).max() < 1e-6
     assert (tmp_path / "ds" / "models_eval" / "models_info.json").is_file()
     assert bop.model_path(tmp_path / "ds" / "models_eval", 1).is_file()
+
+
+def test_models_keep_the_source_files_vertex_normals(tmp_path):
+    """A model read and written again keeps its file's normals, vertices and colours (not recomputed normals)."""
+    import numpy as np
+    import trimesh
+
+    from argen import bop
+
+    box = trimesh.creation.box(extents=(60.0, 40.0, 20.0))  # mm
+    v, f = trimesh.remesh.subdivide(box.vertices, box.faces)
+    rng = np.random.default_rng(0)
+    normals = rng.normal(size=(len(v), 3))  # deliberately not the face normals
+    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+    colours = rng.integers(0, 255, (len(v), 4), dtype=np.uint8)
+    colours[:, 3] = 255
+    src = trimesh.Trimesh(v, f, vertex_normals=normals, vertex_colors=colours, process=False)
+    (tmp_path / "src.ply").write_bytes(src.export(file_type="ply", encoding="binary", vertex_normal=True))
+    m = bop.read_mesh(tmp_path / "src.ply")
+    assert np.abs(m.vertices * 1000 - v).max() < 1e-4
+    bop.write_mesh(tmp_path / "out.ply", m)
+    with (tmp_path / "out.ply").open("rb") as fh:
+        back = trimesh.exchange.ply.load_ply(fh)
+    assert np.abs(back["vertex_normals"] - normals).max() < 1e-6
+    assert np.abs(back["vertices"] - v).max() < 1e-4
+    assert np.array_equal(back["vertex_colors"], colours)
