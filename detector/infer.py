@@ -8,7 +8,8 @@ new centre and the pose recomputed (``recentre``), which forgives a larger stage
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+import time
+from dataclasses import dataclass, replace
 
 import numpy as np
 import torch
@@ -67,12 +68,12 @@ def crop_predictions(net, features: np.ndarray, centres: np.ndarray, classes: np
 
 
 def pose_from_crop(xyz: np.ndarray, prob: np.ndarray, model_xyz: np.ndarray, diameter: float, cfg: CropPoseConfig,
-                   rng: np.random.Generator, surface=None) -> tuple[np.ndarray, np.ndarray, float, np.ndarray] | None:
+                   rng: np.random.Generator, surface=None) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
     """A pose from one crop's predictions: xyz (n,3) camera metres, prob (n,), model_xyz (n,3) model metres.
 
     surface: (cKDTree of model points, normals) for ``cfg.verify`` > 1 (:meth:`detector.pose.ObjectInfo.surface`).
-    Returns R (3,3), t (3,), score (inlier share x mean foreground probability) and the inlier rows of the
-    crop, or None with fewer than ``cfg.min_fg`` foreground points.
+    Returns R (3,3), t (3,) and the foreground (probability >= ``cfg.fg_threshold``) indices of the crop, or None
+    with fewer than ``cfg.min_fg`` foreground points.
     """
     fg = np.flatnonzero(prob >= cfg.fg_threshold)
     if len(fg) < max(cfg.min_fg, 3):
@@ -83,11 +84,10 @@ def pose_from_crop(xyz: np.ndarray, prob: np.ndarray, model_xyz: np.ndarray, dia
         tree, normals = surface
         fits = [fit_rms(fit_residuals(xyz[fg], tree, normals, R, t, 0.05 * diameter), cfg.verify_trim)
                 for R, t, _ in cands]
-        R, t, inl = cands[int(np.argmin(fits))]
+        R, t, _ = cands[int(np.argmin(fits))]
     else:
-        R, t, inl = cands
-    score = float(inl.mean() * prob[fg].mean())
-    return R, t, score, fg[inl]
+        R, t, _ = cands
+    return R, t, fg
 
 
 class CropPoser:
@@ -96,11 +96,11 @@ class CropPoser:
     net: a CropNet (eval mode); class_ids: its object ids (class c is ``class_ids[c]``); objects: the pose
     stage's :class:`detector.pose.ObjectInfo`; crop_cfg / cfg: crop and pose options; normalisation: colour
     normalisation of the network input. Calling it with (detections, features (N,9), timings) returns the
-    detections with stage-2 poses, scores ``stage-1 score x crop score`` and ``points`` = the crop's foreground
-    rows of ``features`` (ICP uses them). A detection whose crop yields no pose is dropped. Adds "stage2" seconds.
-    The score is the share of the foreground points that the model surface under the pose explains to within
-    ``support_distance`` of the diameter (:func:`detector.pose.surface_support`): it tells wrong poses and false
-    detections from right ones far better than vote or inlier shares (measured on a validation capture).
+    detections with stage-2 poses, scores and ``points`` = the crop's foreground rows of ``features`` (ICP uses
+    them). A detection whose crop yields no pose is dropped. Adds "stage2" seconds. The score is the share of the
+    foreground points that the model surface under the pose explains to within ``support_distance`` of the
+    diameter (:func:`detector.pose.surface_support`): it tells wrong poses and false detections from right ones
+    far better than vote or inlier shares (measured on a validation capture).
     """
 
     def __init__(self, net, class_ids: list[int], objects, crop_cfg: CropConfig, normalisation: dict,
@@ -118,15 +118,12 @@ class CropPoser:
 
     def __call__(self, detections: list[Detection], features: np.ndarray, timings: dict | None = None
                  ) -> list[Detection]:
-        import time
-        from dataclasses import replace
-
         t0 = time.perf_counter()
         dets = [d for d in detections if d.obj_id in self.class_ids]
         xyz = np.asarray(features[:, :3], np.float64)
         rng = np.random.default_rng(self.seed)
         centres = [d.control_points[8] for d in dets]
-        results: list = [None] * len(dets)
+        results: list = [None] * len(dets)  # (R, t, foreground rows of features) of each detection
         for it in range(1 + self.cfg.recentre):
             todo = [k for k in range(len(dets)) if it == 0 or results[k] is not None]
             if not todo:
@@ -141,17 +138,17 @@ class CropPoser:
                                      self.objects.surface(oid) if self.cfg.verify > 1 else None)
                 if res is None:
                     continue
-                R, t, score, _ = res
-                fg = np.unique(rows[prob >= self.cfg.fg_threshold])
-                results[k] = (R, t, score, fg)
-                centres[k] = R @ self.objects.control_points[dets[k].obj_id][8] + t
+                R, t, fg = res
+                results[k] = (R, t, np.unique(rows[fg]))
+                centres[k] = R @ self.objects.control_points[oid][8] + t
         out = []
         for d, r in zip(dets, results):
             if r is None:
                 continue
-            R, t, _, fg = r
+            R, t, fg = r
             tree, normals = self.objects.surface(d.obj_id)
-            score = surface_support(xyz[fg], tree, normals, R, t, self.support_distance * self.objects.diameters[d.obj_id])
+            dist = self.support_distance * self.objects.diameters[d.obj_id]
+            score = surface_support(xyz[fg], tree, normals, R, t, dist)
             cps = self.objects.control_points[d.obj_id] @ R.T + t
             out.append(replace(d, R=R, t=t, score=score, control_points=cps, points=fg))
         if timings is not None:

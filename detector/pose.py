@@ -45,8 +45,8 @@ class PoseConfig:
     not trained): the detection's centre is their robust mean and its orientation is left to stage 2;
     min_score: final detections scoring less are dropped (with ICP, by their score after ICP);
     min_score_unrefined: the threshold of the unrefined detections (None: ``min_score``); a two-stage detection's
-    support before ICP is lower than after it, so the two get thresholds of their own; support_distance: a two-stage detection's
-    score is the share of its points within this fraction of the diameter of the model surface under its pose
+    support before ICP is lower than after it, so the two get thresholds of their own;
+    support_distance: a two-stage detection's score is the share of its points within this fraction of the diameter of the model surface under its pose
     (:func:`surface_support`), recomputed after ICP.
     """
 
@@ -449,7 +449,8 @@ def refine(detections: list[Detection], xyz: np.ndarray, objects: ObjectInfo, cf
     happened. Detections with fewer than ``cfg.icp_min_points`` scene points are "skipped". Adds "icp" seconds.
     """
     t0 = time.perf_counter()
-    owners = nearest_owner(xyz, cloud, cfg.propagate, cfg.owner_votes) if cloud is not None and detections else None
+    propagate = cloud is not None and any(d.points is None for d in detections)  # a two-stage model's carry points
+    owners = nearest_owner(xyz, cloud, cfg.propagate, cfg.owner_votes) if propagate else None
     out = []
     for d in detections:
         if d.points is not None and cloud is not None:

@@ -349,16 +349,17 @@ def evaluate(model: torch.nn.Module, dataset: PointDataset, cfg: TrainConfig, de
 
 
 class MetricsLog:
-    """``metrics.csv``: one row per step; on resume the rows after the checkpoint's step are dropped."""
+    """``metrics.csv`` (columns ``fields``): one row per step; on resume the rows after the checkpoint's step
+    are dropped."""
 
-    def __init__(self, path: Path, keep_until: int | None):
+    def __init__(self, path: Path, keep_until: int | None, fields: list[str] = METRIC_FIELDS):
         self.path = path
         rows = []
         if keep_until is not None and path.is_file():
             with path.open(newline="") as f:
                 rows = [r for r in csv.DictReader(f) if int(r["step"]) <= keep_until]
         self.file = path.open("w", newline="")
-        self.writer = csv.DictWriter(self.file, fieldnames=METRIC_FIELDS)
+        self.writer = csv.DictWriter(self.file, fieldnames=fields)
         self.writer.writeheader()
         self.writer.writerows(rows)
         self.file.flush()
@@ -425,6 +426,16 @@ def check_resumable(saved: dict, cfg: TrainConfig, path: Path) -> None:
                                 f"{key}={saved.get(key)!r}")
 
 
+def run_checkpoint(out_dir: Path, resume: bool) -> Path:
+    """``out_dir/last.pt``, checked: it must exist to resume and must not to start a run (DetectorError)."""
+    last_path = Path(out_dir) / "last.pt"
+    if resume and not last_path.is_file():
+        raise DetectorError(f"nothing to resume: {last_path} does not exist")
+    if not resume and last_path.exists():
+        raise DetectorError(f"{out_dir} already holds a run; resume it or choose another folder")
+    return last_path
+
+
 def restore_state(net: torch.nn.Module, opt, sched, model_state: dict, state: dict, cfg, path: Path,
                   device: torch.device, start: int, total: int) -> None:
     """Resume: check the run's settings (:func:`check_resumable`), load weights, optimiser, scheduler and RNG state;
@@ -464,11 +475,7 @@ def _train(cfg: TrainConfig, train_path: str | Path, out_dir: str | Path, val_pa
 
     validate_config(cfg)
     out_dir = Path(out_dir)
-    last_path = out_dir / "last.pt"
-    if resume and not last_path.is_file():
-        raise DetectorError(f"nothing to resume: {last_path} does not exist")
-    if not resume and last_path.exists():
-        raise DetectorError(f"{out_dir} already holds a run; resume it or choose another folder")
+    last_path = run_checkpoint(out_dir, resume)
     ctx.barrier()  # no process may see last.pt written by rank 0 before passing the checks above
     device = resolve_device(cfg.device)
     if device.type == "cuda" and ctx.enabled:

@@ -8,7 +8,6 @@ one. The learning-rate schedule is :func:`detector.train.lr_factor`'s. CPU or CU
 
 from __future__ import annotations
 
-import csv
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -22,8 +21,8 @@ from detector.crops import CropConfig
 from detector.cropnet import CropNet, CropNetConfig, crop_loss
 from detector.data import NORMALISATION, CropDataset, StreamBatchSampler, collate_crops
 from detector.errors import DetectorError
-from detector.train import (_worker_init, config_from_dict, config_to_dict, loader_generator, lr_factor,
-                            resolve_device, restore_state, rng_state, set_dotted)
+from detector.train import (MetricsLog, _worker_init, config_from_dict, config_to_dict, loader_generator,
+                            lr_factor, resolve_device, restore_state, rng_state, run_checkpoint, set_dotted)
 
 POSE_KIND = "crop-pose"
 POSE_METRICS = ["step", "epoch", "loss", "fg", "coord", "fg_acc", "crops", "lr", "steps_per_s"]
@@ -84,11 +83,7 @@ def train_pose(cfg: PoseTrainConfig, train_path: str | Path, out_dir: str | Path
     from tqdm import tqdm
 
     out_dir = Path(out_dir)
-    last_path = out_dir / "last.pt"
-    if resume and not last_path.is_file():
-        raise DetectorError(f"nothing to resume: {last_path} does not exist")
-    if not resume and last_path.exists():
-        raise DetectorError(f"{out_dir} already holds a run; resume it or choose another folder")
+    last_path = run_checkpoint(out_dir, resume)
     device = resolve_device(cfg.device)
     ds = CropDataset(train_path, cfg.crop, augment=cfg.augment, seed=cfg.seed, class_ids=cfg.class_ids)
     with torch.random.fork_rng(devices=[device] if device.type == "cuda" else []):
@@ -107,14 +102,7 @@ def train_pose(cfg: PoseTrainConfig, train_path: str | Path, out_dir: str | Path
             restore_state(net, opt, sched, part["model_state"], state, cfg, last_path, device, start, cfg.steps)
         out_dir.mkdir(parents=True, exist_ok=True)
         (out_dir / "config.yaml").write_text(yaml.safe_dump(config_to_dict(cfg), sort_keys=False))
-        rows = []
-        if resume and (out_dir / "metrics.csv").is_file():
-            with (out_dir / "metrics.csv").open(newline="") as f:
-                rows = [r for r in csv.DictReader(f) if int(r["step"]) <= start]
-        mfile = (out_dir / "metrics.csv").open("w", newline="")
-        writer = csv.DictWriter(mfile, fieldnames=POSE_METRICS)
-        writer.writeheader()
-        writer.writerows(rows)
+        log = MetricsLog(out_dir / "metrics.csv", keep_until=start if resume else None, fields=POSE_METRICS)
 
         def save(step: int) -> None:
             state = {"optimizer": opt.state_dict(), "scheduler": sched.state_dict(), "rng": rng_state(device),
@@ -157,8 +145,7 @@ def train_pose(cfg: PoseTrainConfig, train_path: str | Path, out_dir: str | Path
                 row = {"step": step, "epoch": f"{step * cfg.batch_frames / len(ds):.4f}", **parts, "lr": lr,
                        "steps_per_s": 1.0 / max(now - t_last, 1e-9)}
                 t_last = now
-                writer.writerow({k: (f"{v:.6g}" if isinstance(v, float) else v) for k, v in row.items()})
-                mfile.flush()
+                log.write(row)
                 recent = (recent + [parts])[-20:]
                 bar.update(1)
                 if log_every and step % log_every == 0:
@@ -170,7 +157,7 @@ def train_pose(cfg: PoseTrainConfig, train_path: str | Path, out_dir: str | Path
         finally:
             del batches
             bar.close()
-            mfile.close()
+            log.close()
             ds.close()
     last = {k: float(np.mean([r[k] for r in recent])) for k in ("loss", "fg", "coord", "fg_acc")} if recent else {}
     return {"steps": step, "seconds": time.perf_counter() - t0, "last": last, "checkpoint": last_path}
