@@ -76,21 +76,35 @@ def parse_models_info(data: dict, where: str = "models_info.json") -> dict[int, 
             diameter = float(entry["diameter"]) / MM_PER_M
             bmin = np.array([entry["min_x"], entry["min_y"], entry["min_z"]], float) / MM_PER_M
             bsize = np.array([entry["size_x"], entry["size_y"], entry["size_z"]], float) / MM_PER_M
-            sym_d = []
-            for s in entry.get("symmetries_discrete", []):
-                T = np.array(s, float).reshape(4, 4)
-                T[:3, 3] /= MM_PER_M
-                sym_d.append(T)
-            sym_c = [
-                {"axis": np.array(s["axis"], float), "offset": np.array(s["offset"], float) / MM_PER_M}
-                for s in entry.get("symmetries_continuous", [])
-            ]
+            sym_d, sym_c = _parse_symmetries(entry)
         except (KeyError, TypeError, ValueError) as exc:
             raise ArgenError(f"{where}: entry '{key}' is malformed ({exc.__class__.__name__}: {exc})") from exc
         if not (diameter > 0 and np.all(bsize > 0)):
             raise ArgenError(f"{where}: entry '{key}' has a non-positive diameter or size")
         out[obj_id] = ModelInfo(diameter, bmin, bsize, sym_d, sym_c)
     return out
+
+
+def _parse_symmetries(entry: dict) -> tuple[list[np.ndarray], list[dict]]:
+    sym_d = []
+    for s in entry.get("symmetries_discrete", []):
+        T = np.array(s, float).reshape(4, 4)
+        T[:3, 3] /= MM_PER_M
+        sym_d.append(T)
+    sym_c = [{"axis": np.array(s["axis"], float), "offset": np.array(s["offset"], float) / MM_PER_M}
+             for s in entry.get("symmetries_continuous", [])]
+    return sym_d, sym_c
+
+
+def parse_symmetries(entry: dict, where: str) -> tuple[list[np.ndarray], list[dict]]:
+    """The ``symmetries_discrete`` ((4,4) transforms, translation in metres) and ``symmetries_continuous``
+    ({"axis": (3,), "offset": (3,) metres}) of one models_info-style entry (mm); absent keys mean none."""
+    try:
+        if not isinstance(entry, dict):
+            raise TypeError("not an object")
+        return _parse_symmetries(entry)
+    except (KeyError, TypeError, ValueError) as exc:
+        raise ArgenError(f"{where}: malformed symmetries ({exc.__class__.__name__}: {exc})") from exc
 
 
 def read_models_info(path: str | os.PathLike) -> dict[int, ModelInfo]:

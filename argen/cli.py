@@ -101,7 +101,8 @@ def capture_sim(
     out: Path = typer.Option(..., "--out", help="output BOP dataset folder"),
     scene: str = typer.Option("linemod", "--scene", help="template name (linemod, lchf) or a YAML file"),
     frames: int = typer.Option(20, "--frames", help="frames to capture (accepted + rejected)"),
-    models: Optional[Path] = typer.Option(None, "--models", help="BOP models folder (PLY in mm); default: built-in objects"),
+    models: Optional[Path] = typer.Option(None, "--models", help="BOP models folder (PLY in mm), or a folder of "
+                                           "plain meshes (imported on the fly); default: built-in objects"),
     objects: Optional[str] = typer.Option(None, "--objects", help="comma-separated object names or ids"),
     seed: Optional[int] = typer.Option(None, "--seed", help="random seed (default: the template's)"),
     noise: Optional[str] = typer.Option(None, "--noise", help="'kinect' or 'none' (default: the template's)"),
@@ -114,14 +115,16 @@ def capture_sim(
 ):
     """Simulate an AR capture (boards, placed objects, rendering, sensor noise) and write BOP scenes."""
     from argen.capture import CaptureRequest, run_capture
-    from argen.objects import load_objects
+    from argen.meshimport import load_any_models
 
     if frames < 1:
         raise ArgenError(f"--frames must be at least 1, got {frames}")
     if workers < 1:
         raise ArgenError(f"--workers must be at least 1, got {workers}")
     cfg = load_config(scene, seed, noise, sets, objects)
-    objs = load_objects(models, cfg.objects or None)
+    objs, notes = load_any_models(models, cfg.objects or None)
+    for line in notes:
+        typer.echo(line, err=True)
     check_placeable(cfg, objs)
     req = CaptureRequest(cfg=cfg, objects=objs, out=out, frames=frames, workers=workers,
                          models_source=str(models.resolve()) if models else "builtin",
@@ -180,6 +183,8 @@ from argen.cli_label import register as _register_label  # noqa: E402  (label, v
 _register_label(app)
 from argen.cli_real import register as _register_real  # noqa: E402  (capture --recording, replace)
 _register_real(app)
+from argen.cli_models import register as _register_models  # noqa: E402  (models import)
+_register_models(app)
 
 
 if __name__ == "__main__":

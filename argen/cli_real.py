@@ -20,7 +20,9 @@ def register(app: typer.Typer) -> None:
         recording: Path = typer.Option(..., "--recording", help="recording folder: rgb/, depth/, camera.json "
                                        "(fx, fy, cx, cy, depth_scale), optional timestamps.txt"),
         out: Path = typer.Option(..., "--out", help="output BOP dataset folder"),
-        models: Optional[Path] = typer.Option(None, "--models", help="BOP models folder (PLY in mm); default: built-in objects"),
+        models: Optional[Path] = typer.Option(None, "--models", help="BOP models folder (PLY in mm), or a "
+                                               "folder of plain meshes (imported on the fly); default: built-in "
+                                               "objects"),
         scene: str = typer.Option("linemod", "--scene", help="template (board, placement, noise) or a YAML file"),
         objects: Optional[str] = typer.Option(None, "--objects", help="comma-separated object names or ids"),
         seed: Optional[int] = typer.Option(None, "--seed", help="random seed of the placements"),
@@ -36,8 +38,8 @@ def register(app: typer.Typer) -> None:
         quiet: bool = typer.Option(False, "--quiet", help="no progress bar"),
     ):
         """Composite virtual objects into a recorded RGB-D sequence of the printed board; write BOP scenes."""
-        from argen.objects import load_objects
         from argen.capture import CaptureRequest
+        from argen.meshimport import load_any_models
         from argen.realcap import run_real_capture
         from argen.recording import open_recording
 
@@ -45,7 +47,9 @@ def register(app: typer.Typer) -> None:
             raise ArgenError(f"--workers must be at least 1, got {workers}")
         rec = open_recording(recording, depth_scale)
         cfg = load_config(scene, seed, noise, sets, objects)
-        objs = load_objects(models, cfg.objects or None)
+        objs, notes = load_any_models(models, cfg.objects or None)
+        for line in notes:
+            typer.echo(line, err=True)
         check_placeable(cfg, objs)
         req = CaptureRequest(cfg=cfg, objects=objs, out=out, frames=len(rec), workers=workers,
                              models_source=str(models.resolve()) if models else "builtin",
@@ -59,7 +63,8 @@ def register(app: typer.Typer) -> None:
         dataset: Path = typer.Argument(..., help="BOP dataset with ground truth (e.g. the LineMOD test set)"),
         out: Path = typer.Option(..., "--out", help="output BOP dataset folder"),
         split: str = typer.Option("test", "--split", help="split folder inside the dataset"),
-        models: Optional[Path] = typer.Option(None, "--models", help="BOP models folder (default: DATASET/models)"),
+        models: Optional[Path] = typer.Option(None, "--models", help="BOP models folder, or a folder of plain meshes "
+                                               "named obj_NNNNNN (imported on the fly); default: DATASET/models"),
         obj_id: Optional[int] = typer.Option(None, "--obj-id", help="target object (default: each frame's first "
                                              "GT instance)"),
         fraction: float = typer.Option(0.1, "--fraction", help="share of the frames to use (the paper: 0.1)"),
@@ -80,4 +85,6 @@ def register(app: typer.Typer) -> None:
         summary = replace_dataset(dataset, out, split=split, models=models, obj_id=obj_id, fraction=fraction,
                                   step_deg=step_deg, seed=seed, noise=noise_cfg, overwrite=overwrite,
                                   progress=not quiet)
+        for line in summary.notes:
+            typer.echo(line, err=True)
         typer.echo(f"{out}: {summary.line()}")

@@ -23,7 +23,8 @@ LINEMOD_NAMES = {
     1: "ape", 2: "benchvise", 3: "bowl", 4: "camera", 5: "can", 6: "cat", 7: "cup", 8: "driller",
     9: "duck", 10: "eggbox", 11: "glue", 12: "holepuncher", 13: "iron", 14: "lamp", 15: "phone",
 }
-NAMES_FILE = "argen_names.json"  # {obj_id: name} written beside models_info.json by argen
+NAMES_FILE = "names.json"  # {obj_id: name} written beside models_info.json by argen
+LEGACY_NAMES_FILE = "argen_names.json"  # its earlier name, still read
 
 
 @dataclass
@@ -108,10 +109,12 @@ def info_from_mesh(mesh: trimesh.Trimesh, symmetries_discrete=(), symmetries_con
 
 def _names_for(models_dir: Path, ids: list[int]) -> dict[int, str]:
     names_p = models_dir / NAMES_FILE
+    if not names_p.is_file():
+        names_p = models_dir / LEGACY_NAMES_FILE
     if names_p.is_file():
         from argen.fileio import read_json
 
-        raw = read_json(names_p, NAMES_FILE)
+        raw = read_json(names_p, names_p.name)
         return {i: str(raw.get(str(i), f"obj_{i:06d}")) for i in ids}
     linemod = models_dir.resolve().parent.name.lower() in ("lm", "lmo", "linemod", "lm_full")
     return {i: (LINEMOD_NAMES.get(i, f"obj_{i:06d}") if linemod else f"obj_{i:06d}") for i in ids}
@@ -140,7 +143,7 @@ def load_models(models_dir: str | os.PathLike, select: list[str] | None = None) 
     if missing:
         raise ArgenError(f"{d / 'models_info.json'} has no entry for object(s) {', '.join(map(str, missing))}")
     names = _names_for(d, ids)
-    chosen = _select(ids, names, select)
+    chosen = select_ids(ids, names, select)
     out = []
     for i in chosen:
         path = bop.model_path(d, i)
@@ -164,7 +167,8 @@ def _check_units(mesh: trimesh.Trimesh, info: bop.ModelInfo, path: Path) -> None
                          f"{expect * 1000:.1f} mm: units disagree")
 
 
-def _select(ids: list[int], names: dict[int, str], select: list[str] | None) -> list[int]:
+def select_ids(ids: list[int], names: dict[int, str], select: list[str] | None) -> list[int]:
+    """The sorted ids that ``select`` names (ids or names, case-insensitive; None or empty: all ``ids``)."""
     if not select:
         return list(ids)
     by_name = {n.lower(): i for i, n in names.items()}
@@ -261,7 +265,7 @@ def builtin_objects(select: list[str] | None = None) -> list[ObjectModel]:
     rng = np.random.default_rng(12345)
     parts = _builtin_parts(rng)
     names = {BUILTIN_IDS[n]: n for n in parts}
-    chosen = _select(sorted(names), names, select)
+    chosen = select_ids(sorted(names), names, select)
     out = []
     for obj_id in chosen:
         name = names[obj_id]
@@ -285,16 +289,18 @@ def load_objects(models_dir: str | os.PathLike | None, select: list[str] | None 
     return objs
 
 
-def write_models(models_dir: str | os.PathLike, objects: list[ObjectModel], evaluation: bool = False) -> None:
-    """Write the objects as a BOP models folder (PLY in mm, models_info.json, argen_names.json); with
-    ``evaluation``, BOP's models_eval folder instead (:func:`eval_mesh` of each object, no names file)."""
+def write_models(models_dir: str | os.PathLike, objects: list[ObjectModel], evaluation: bool = False,
+                 rewrite: frozenset[int] | set[int] = frozenset()) -> None:
+    """Write the objects as a BOP models folder (PLY in mm, models_info.json, names.json); with
+    ``evaluation``, BOP's models_eval folder instead (:func:`eval_mesh` of each object, no names file).
+    A model file already there is kept unless its id is in ``rewrite``."""
     from argen.fileio import write_json
 
     d = Path(models_dir)
     d.mkdir(parents=True, exist_ok=True)
     for o in objects:
         p = bop.model_path(d, o.obj_id)
-        if not p.exists():
+        if not p.exists() or o.obj_id in rewrite:
             bop.write_mesh(p, eval_mesh(o.mesh, o.diameter) if evaluation else o.mesh)
     bop.write_models_info(d / "models_info.json", {o.obj_id: o.info for o in objects})
     if not evaluation:
@@ -315,6 +321,7 @@ def eval_mesh(mesh: trimesh.Trimesh, diameter: float, edge: float = EVAL_EDGE) -
     return trimesh.Trimesh(v, f, process=False)
 
 
-def write_models_eval(models_dir: str | os.PathLike, objects: list[ObjectModel]) -> None:
+def write_models_eval(models_dir: str | os.PathLike, objects: list[ObjectModel],
+                      rewrite: frozenset[int] | set[int] = frozenset()) -> None:
     """Write BOP's ``models_eval`` folder: :func:`eval_mesh` of each object (PLY in mm) and models_info.json."""
-    write_models(models_dir, objects, evaluation=True)
+    write_models(models_dir, objects, evaluation=True, rewrite=rewrite)

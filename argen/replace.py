@@ -27,7 +27,7 @@ from __future__ import annotations
 import shutil
 import sys
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import cv2
@@ -39,7 +39,8 @@ from argen.config import NoiseConfig
 from argen.errors import ArgenError
 from argen.fileio import write_json
 from argen.noise import apply_noise
-from argen.objects import ObjectModel, load_models, write_models
+from argen.meshimport import load_any_models
+from argen.objects import ObjectModel, write_models
 from argen.render import Light, RenderItem, get_renderer
 
 REMOVE_GROW_PX = 2  # silhouette growth for the removal, pixels
@@ -53,11 +54,13 @@ _HEADLIGHT = Light("directional", 2.5, np.ones(3), np.diag([1.0, -1.0, -1.0, 1.0
 
 @dataclass
 class ReplaceSummary:
-    """What a replace run did: source frames used, frames written, wall time (seconds)."""
+    """What a replace run did: source frames used, frames written, wall time (seconds), and notes for the
+    user (how a plain mesh folder given as the models was imported)."""
 
     source_frames: int
     written: int
     seconds: float
+    notes: list[str] = field(default_factory=list)
 
     def line(self) -> str:
         per = self.seconds / self.written if self.written else 0.0
@@ -280,7 +283,8 @@ def replace_dataset(dataset: str | Path, out: str | Path, split: str = "test", m
         raise ArgenError(f"--step-deg must divide 360, got {step_deg:g}")
     if not dataset.is_dir():
         raise ArgenError(f"dataset folder not found: {dataset}")
-    objs = {o.obj_id: o for o in load_models(models or dataset / "models")}
+    models_list, notes = load_any_models(Path(models) if models else dataset / "models")
+    objs = {o.obj_id: o for o in models_list}
     scenes = {sid: bop.load_scene(dataset, split, sid) for sid in bop.list_scenes(dataset, split)}
     candidates, targets = [], {}
     for sid, sc in scenes.items():
@@ -330,7 +334,7 @@ def replace_dataset(dataset: str | Path, out: str | Path, split: str = "test", m
         for name, content in js.items():
             write_json(bop.scene_dir(out, split, sid) / f"{name}.json", content, indent=None)
     write_json(out / "replace_log.json", {"frames": log}, indent=1)
-    return ReplaceSummary(len(chosen), written, time.perf_counter() - t_start)
+    return ReplaceSummary(len(chosen), written, time.perf_counter() - t_start, notes)
 
 
 def _write_frame(root: Path, split: str, sid: int, im: int, c: dict, depth_scale: float) -> None:
