@@ -394,20 +394,23 @@ def import_to_folder(paths: list[Path], out: Path, opts: ImportOptions | None = 
 
 def load_any_models(models: Path | None, select: list[str] | None = None) -> tuple[list[ObjectModel], list[str]]:
     """What ``--models`` names, as objects, and lines telling the user what was done: a BOP models folder as it
-    is; a folder of plain meshes imported on the fly with the default options; None: the built-in objects."""
+    is; a folder of plain meshes, or one mesh file, imported on the fly with the default options; None: the
+    built-in objects."""
     if models is None or is_bop_models(Path(models)):
         return load_objects(models, select), []
     models = Path(models)
-    if not models.is_dir():
+    if models.is_file() and models.suffix.lower() in MESH_SUFFIXES:
+        pass  # one mesh file
+    elif not models.is_dir():
         raise ArgenError(f"models folder not found: {models}")
-    if not any(f.suffix.lower() in MESH_SUFFIXES for f in models.iterdir()):
+    elif not any(f.suffix.lower() in MESH_SUFFIXES for f in models.iterdir()):
         return load_objects(models, select), []  # load_models says what a BOP folder lacks
     imported = import_meshes([models])
     by_id = {o.model.obj_id: o for o in imported}
     chosen = select_ids(sorted(by_id), {i: o.model.name for i, o in by_id.items()}, select)
-    lines = [f"--models {models} is not a BOP models folder (no models_info.json): imported its "
-             f"{len(imported)} meshes with the default options (`argen models import` sets them); they are "
-             "written to the dataset's models/"]
+    what = "a mesh file" if models.is_file() else "not a BOP models folder (no models_info.json)"
+    lines = [f"--models {models} is {what}: imported {len(imported)} mesh(es) with the default options "
+             "(`argen models import` sets them); they are written to the dataset's models/"]
     for i in chosen:
         lines += by_id[i].lines()
     return [by_id[i].model for i in chosen], lines

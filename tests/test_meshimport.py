@@ -186,3 +186,5 @@ def test_cli_import_and_capture_sim_with_a_plain_mesh_folder(tmp_path):
     assert json.loads((out / "models" / "names.json").read_text()) == {"2": "widget"}
     gts = [g for p in out.glob("train_pbr/*/scene_gt.json") for im in json.loads(p.read_text()).values() for g in im]
     assert gts and {g["obj_id"] for g in gts} == {2}
+    objs, notes = load_any_models(src / "can.stl")  # one mesh file works too
+    assert [o.name for o in objs] == ["can"] and "a mesh file" in notes[0]
