@@ -6,7 +6,8 @@ BOP millimetres on the way out. Layout (https://github.com/thodan/bop_toolkit/bl
     DATASET/models/{models_info.json, obj_OBJID.ply}
     DATASET/camera.json
     DATASET/SPLIT/SCENE/{scene_camera.json, scene_gt.json, scene_gt_info.json}
-    DATASET/SPLIT/SCENE/{rgb,depth}/IMID.png
+    DATASET/SPLIT/SCENE/rgb/IMID.{png,jpg}  (JPEG in pbr splits, e.g. train_pbr, as BOP's toolkit expects)
+    DATASET/SPLIT/SCENE/depth/IMID.png
     DATASET/SPLIT/SCENE/{mask,mask_visib}/IMID_GTIDX.png
 
 with SCENE and IMID six-digit zero-padded ids. ``depth_mm = png_value * depth_scale``.
@@ -38,6 +39,46 @@ def scene_dir(root: str | os.PathLike, split: str, scene_id: int) -> Path:
 def image_path(root, split: str, scene_id: int, im_id: int, kind: str = "rgb", ext: str = ".png") -> Path:
     """Path of an ``rgb`` or ``depth`` image."""
     return scene_dir(root, split, scene_id) / kind / f"{im_id:06d}{ext}"
+
+
+#: Quality of the JPEG colour images of pbr splits (BOP's own pbr renders are JPEG too).
+JPEG_QUALITY = 95
+RGB_EXTS = (".png", ".jpg", ".jpeg", ".tif")
+
+
+def split_type(split: str) -> str:
+    """BOP's split type: what follows the first '_' of the split name (``train_pbr`` -> ``pbr``), or ''."""
+    return split.split("_", 1)[1] if "_" in split else ""
+
+
+def rgb_ext(split: str) -> str:
+    """The colour image extension BOP's toolkit expects in ``split``: ``.jpg`` for pbr splits, else ``.png``."""
+    return ".jpg" if split_type(split) == "pbr" or split == "pbr" else ".png"
+
+
+def rgb_path(root, split: str, scene_id: int, im_id: int) -> Path:
+    """The colour image of a frame: the existing file (rgb/ or gray/, any of RGB_EXTS), else the path that
+    :func:`write_rgb` writes."""
+    d = scene_dir(root, split, scene_id)
+    for ext in RGB_EXTS:
+        for kind in ("rgb", "gray"):
+            p = d / kind / f"{im_id:06d}{ext}"
+            if p.is_file():
+                return p
+    return image_path(root, split, scene_id, im_id, "rgb", rgb_ext(split))
+
+
+def write_rgb(root, split: str, scene_id: int, im_id: int, rgb: np.ndarray) -> Path:
+    """Write a frame's colour image (H,W,3) uint8 as the split wants it (JPEG for pbr splits, else PNG)."""
+    path = image_path(root, split, scene_id, im_id, "rgb", rgb_ext(split))
+    if path.suffix == ".jpg":
+        ok, buf = cv2.imencode(".jpg", cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR), [cv2.IMWRITE_JPEG_QUALITY, JPEG_QUALITY])
+        if not ok:
+            raise ArgenError(f"cannot encode image {path} ({rgb.dtype}, shape {rgb.shape})")
+        write_bytes(path, buf.tobytes(), sync=False)
+    else:
+        write_png(path, rgb)
+    return path
 
 
 def mask_path(root, split: str, scene_id: int, im_id: int, gt_idx: int, visib: bool = True) -> Path:
@@ -265,12 +306,20 @@ def bbox_of(mask: np.ndarray) -> list[int]:
     return [x0, y0, int(xs.max()) - x0 + 1, int(ys.max()) - y0 + 1]
 
 
-def gt_info_entry(mask_full: np.ndarray, mask_visib: np.ndarray, depth: np.ndarray) -> dict:
-    """A ``scene_gt_info.json`` entry from the full and visible masks and the written depth."""
-    px_all = int(mask_full.sum())
+def gt_info_entry(mask_full: np.ndarray, mask_visib: np.ndarray, depth: np.ndarray,
+                  outside: tuple[int, list[int]] | None = None) -> dict:
+    """A ``scene_gt_info.json`` entry from the full and visible masks (H,W) bool and the written depth (H,W).
+
+    outside: for a silhouette cut by the image edge, (its pixels beyond the edge, its whole unclipped
+    [x, y, w, h]) (``Renderer.outside_silhouettes``). As in BOP's toolkit, ``px_count_all``, ``visib_fract`` and
+    ``bbox_obj`` then cover the whole silhouette (``bbox_obj`` may start at negative x, y), while
+    ``px_count_valid``, ``px_count_visib`` and ``bbox_visib`` count what is in the image.
+    """
+    n_out, bbox_all = outside if outside is not None else (0, bbox_of(mask_full))
+    px_all = int(mask_full.sum()) + int(n_out)
     px_visib = int(mask_visib.sum())
     return {
-        "bbox_obj": bbox_of(mask_full),
+        "bbox_obj": [int(v) for v in bbox_all],
         "bbox_visib": bbox_of(mask_visib),
         "px_count_all": px_all,
         "px_count_valid": int((mask_full & (depth > 0)).sum()),
@@ -377,13 +426,7 @@ class BopScene:
         return sorted(set(self.cameras) & set(self.gts))
 
     def rgb_path(self, im_id: int) -> Path:
-        d = scene_dir(self.root, self.split, self.scene_id)
-        for ext in (".png", ".jpg", ".jpeg", ".tif"):
-            for kind in ("rgb", "gray"):
-                p = d / kind / f"{im_id:06d}{ext}"
-                if p.is_file():
-                    return p
-        return d / "rgb" / f"{im_id:06d}.png"
+        return rgb_path(self.root, self.split, self.scene_id, im_id)
 
     def read_rgb(self, im_id: int) -> np.ndarray | None:
         """(H,W,3) uint8, or None when the scene has no colour images."""

@@ -32,7 +32,7 @@ from argen import __version__, bop
 from argen.ar import estimate_board_pose, pose_error
 from argen.board import Board
 from argen.camera import intrinsics, sample_view
-from argen.config import TemplateConfig, to_dict
+from argen.config import TemplateConfig, simulation_K, to_dict
 from argen.errors import ArgenError
 from argen.fileio import read_json, write_json
 from argen.noise import apply_noise
@@ -86,7 +86,8 @@ class FrameMaker:
         self.objects = objects
         self.out = Path(out)
         self.board = Board.from_config(cfg.board)
-        self.K = intrinsics(cfg.camera)
+        self.K = intrinsics(cfg.camera)  # written to the files
+        self.K_sim = simulation_K(self.K, cfg.output.pixel_centres)  # the images are made with this one
         self.renderer = get_renderer(cfg.camera.width, cfg.camera.height)
 
     def background(self, index: int, timing: dict | None = None) -> tuple:
@@ -94,7 +95,7 @@ class FrameMaker:
 
         Returns (scene, T_true (4, 4) world->camera, view dict, RenderOutput of the background).
         """
-        cfg, K, cam = self.cfg, self.K, self.cfg.camera
+        cfg, K, cam = self.cfg, self.K_sim, self.cfg.camera
         rng_scene, rng_cam, _, _ = frame_rngs(cfg.seed, index)
         t0 = time.perf_counter()
         scene = build_scene(cfg, self.objects, self.board, rng_scene)
@@ -108,7 +109,7 @@ class FrameMaker:
 
     def simulate(self, index: int) -> tuple[dict, dict]:
         """Simulate frame ``index``: returns (arrays, metadata). Arrays are empty for a rejected frame."""
-        cfg, K = self.cfg, self.K
+        cfg, K = self.cfg, self.K_sim
         _, _, rng_noise, _ = frame_rngs(cfg.seed, index)
         timing = {}
         scene, T_true, view, bg = self.background(index, timing)
@@ -133,14 +134,16 @@ class FrameMaker:
         rgb: (H, W, 3) uint8; depth: (H, W) float32 metres, 0 = none. A virtual pixel shows unless the
         background is more than ``margin`` metres in front of it. Sensor noise (if enabled) goes on the
         whole composite, or only on the virtual pixels (``noise_virtual_only``: the background is a real,
-        already noisy, measurement). Returns the arrays ``write`` takes: rgb, depth, gts, masks.
+        already noisy, measurement). Returns the arrays ``write`` takes: rgb, depth, gts, masks
+        (full, visible) and outside ({gt index: what of a silhouette lies beyond the image edge}).
         """
-        cfg, K, cam = self.cfg, self.K, self.cfg.camera
+        cfg, K, cam = self.cfg, self.K_sim, self.cfg.camera
         t4 = time.perf_counter()
         items = scene.object_items()
         ob = self.renderer.render(items, K, T_est, lights=scene.lights, ambient=scene.ambient,
                                   znear=cam.z_near, zfar=cam.z_far, seg=True)
         full = self.renderer.full_masks(items, K, T_est, znear=cam.z_near, zfar=cam.z_far)
+        beyond = self.renderer.outside_silhouettes(items, K, T_est, full, znear=cam.z_near, zfar=cam.z_far)
         rgb, depth, seg, front = composite(rgb, depth, ob, margin)
         t5 = time.perf_counter()
         timing["render"] = timing.get("render", 0.0) + t5 - t4
@@ -154,7 +157,8 @@ class FrameMaker:
             gts.append((p.obj.obj_id, T_cam_obj[:3, :3], T_cam_obj[:3, 3]))
             m_full = full.get(i + 1, np.zeros_like(front))
             masks.append((m_full, seg == i + 1))
-        return {"rgb": rgb, "depth": depth, "gts": gts, "masks": masks}
+        outside = {i: beyond[i + 1] for i in range(len(scene.placements)) if i + 1 in beyond}
+        return {"rgb": rgb, "depth": depth, "gts": gts, "masks": masks, "outside": outside}
 
     def make(self, index: int) -> FrameRecord:
         """Simulate frame ``index`` and write its image files; the JSON entries are returned."""
@@ -179,9 +183,9 @@ class FrameMaker:
             bop.write_mask(bop.mask_path(root, split, scene_id, im_id, g, visib=False), m_full)
             bop.write_mask(bop.mask_path(root, split, scene_id, im_id, g, visib=True), m_vis)
             gt_entries.append(bop.gt_entry(obj_id, R, t))
-            info_entries.append(bop.gt_info_entry(m_full, m_vis, depth))
+            info_entries.append(bop.gt_info_entry(m_full, m_vis, depth, arrays.get("outside", {}).get(g)))
         bop.write_depth(bop.image_path(root, split, scene_id, im_id, "depth"), depth, ds)
-        bop.write_png(bop.image_path(root, split, scene_id, im_id, "rgb"), arrays["rgb"])
+        bop.write_rgb(root, split, scene_id, im_id, arrays["rgb"])
         timing["write"] = time.perf_counter() - t0
         camera = bop.camera_entry(self.K, ds, meta["T_est"])
         return FrameRecord(index, scene_id, im_id, True, log, camera, gt_entries, info_entries, timing)

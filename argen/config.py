@@ -15,6 +15,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import yaml
 
 from argen.errors import ArgenError
@@ -123,6 +124,24 @@ class OutputConfig:
     frames_per_scene: int = 1000  # BOP convention for PBR-style folders
     split: str = "train_pbr"
     depth_scale: float = 0.1  # BOP depth_scale: depth_mm = png_value * depth_scale
+    # where K puts pixel centres: "integer" (OpenCV, and what a real sensor's calibrated K means: pixel (u, v)
+    # is seen along K^-1 (u, v, 1)), or "half" (at (u + 0.5, v + 0.5): the BOP toolkit renderer's convention,
+    # so its calc_gt_masks reproduces argen's masks exactly; argen label reads the choice from argen.json)
+    pixel_centres: str = "integer"
+
+
+#: output.pixel_centres values and the offset (pixels) from a file's K to the K that images are made with.
+PIXEL_CENTRES = {"integer": 0.0, "half": -0.5}
+
+
+def simulation_K(K, pixel_centres: str):
+    """The intrinsics (3,3) that images are rendered and back-projected with, for the K (3,3) written to the files:
+    the same for "integer" pixel centres; cx, cy - 0.5 for "half" (pixel (u, v) is then seen along the ray that
+    the file's K gives (u + 0.5, v + 0.5))."""
+    Ks = np.array(K, dtype=np.float64)
+    Ks[0, 2] += PIXEL_CENTRES[pixel_centres]
+    Ks[1, 2] += PIXEL_CENTRES[pixel_centres]
+    return Ks
 
 
 @dataclass
@@ -276,6 +295,8 @@ def validate(obj: Any, where: str = "config") -> None:
     elif isinstance(obj, OutputConfig):
         _check(obj.frames_per_scene >= 1, where, "output frames_per_scene must be at least 1")
         _check(obj.depth_scale > 0, where, "output depth_scale must be positive")
+        _check(obj.pixel_centres in PIXEL_CENTRES, where,
+               f"output pixel_centres must be {' or '.join(PIXEL_CENTRES)}, got '{obj.pixel_centres}'")
 
 
 def to_dict(cfg: Any) -> dict:

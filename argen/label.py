@@ -51,6 +51,7 @@ import cv2
 import numpy as np
 
 from argen import __version__, bop
+from argen.config import PIXEL_CENTRES, simulation_K
 from argen.errors import ArgenError
 from argen.fileio import read_json, write_json
 from argen.h5 import FrameLabels, InstanceTable, LabelFile, LabelWriter, ObjectTable, point_control_points
@@ -71,7 +72,9 @@ class LabelConfig:
     of the dataset); voxel: subsampling cube edge (0 = random only, the default: at LineMOD distances a
     pixel is ~1.8 mm wide, so a few-mm voxel changes little and its sort costs ~25 ms a frame);
     seed: subsampling seed; visib_tolerance: depth agreement for rendered visible masks; render_masks: always render the visible masks, even when the dataset has them;
-    model_points: surface sample size per object in the objects table.
+    model_points: surface sample size per object in the objects table; pixel_centres: the convention of the
+    dataset's K (``output.pixel_centres``; None: run_label and preview take ``dataset_pixel_centres``, which
+    is "integer" unless an argen.json says otherwise). Points are back-projected (and cam_K stored) with ``simulation_K``.
     """
 
     max_points: int = 30000
@@ -81,10 +84,13 @@ class LabelConfig:
     visib_tolerance: float = 0.01
     render_masks: bool = False
     model_points: int = 1000
+    pixel_centres: str | None = None
 
     def check(self) -> None:
         if self.max_depth is None:
             raise ValueError("max_depth must be resolved (default_max_depth) before labelling")
+        if self.pixel_centres is not None and self.pixel_centres not in PIXEL_CENTRES:
+            raise ArgenError(f"pixel_centres must be {' or '.join(PIXEL_CENTRES)}, got '{self.pixel_centres}'")
         if self.max_points < 1:
             raise ArgenError(f"--max-points must be at least 1, got {self.max_points}")
         if not self.max_depth > 0:
@@ -255,7 +261,8 @@ class Labeller:
         self._radius = {i: float(np.linalg.norm(c[:8] - c[8], axis=1).max()) for i, c in self._cps.items()}
 
     def _render_masks(self, gts: list[bop.FrameGT], K: np.ndarray, depth: np.ndarray, full: bool):
-        """Visible masks (and full silhouettes when ``full``) of the GT instances by rendering them."""
+        """Visible masks (H,W) bool, and when ``full`` the pixel counts of the whole silhouettes, of the GT
+        instances, by rendering them."""
         from argen.render import RenderItem, get_renderer
 
         h, w = depth.shape
@@ -270,9 +277,10 @@ class Labeller:
         agree = (depth > 0) & (np.abs(depth - out.depth) <= self.cfg.visib_tolerance)
         visib = [(out.seg == k + 1) & agree for k in range(len(gts))]
         fulls = None
-        if full:
+        if full:  # whole silhouettes: the in-image part plus what lies beyond the edge (BOP's visib_fract)
             fm = r.full_masks(items, K, np.eye(4))
-            fulls = [fm[k + 1] for k in range(len(gts))]
+            beyond = r.outside_silhouettes(items, K, np.eye(4), fm)
+            fulls = [int(fm[k + 1].sum()) + beyond.get(k + 1, (0, None))[0] for k in range(len(gts))]
         return visib, fulls
 
     def _drop_far(self, instance: np.ndarray, pts: np.ndarray, cps: np.ndarray, obj_ids: np.ndarray) -> np.ndarray:
@@ -296,7 +304,7 @@ class Labeller:
         t0 = time.perf_counter()
         cfg = self.cfg
         cam = scene.cameras[im_id]
-        K = cam.K
+        K = simulation_K(cam.K, cfg.pixel_centres or "integer")
         gts = scene.gts[im_id]
         for g in gts:
             if g.obj_id not in self.objects:
@@ -325,7 +333,7 @@ class Labeller:
         if have_fract:
             fract = np.array([float(i["visib_fract"]) for i in infos], np.float32)
         else:
-            fract = np.array([m.sum() / max(f.sum(), 1) for m, f in zip(masks, fulls)], np.float32) if gts \
+            fract = np.array([m.sum() / max(f, 1) for m, f in zip(masks, fulls)], np.float32) if gts \
                 else np.zeros(0, np.float32)
         fract = np.clip(fract, 0, 1)
 
@@ -395,6 +403,16 @@ def load_label_objects(models_dir: Path, ids: list[int]) -> dict[int, ObjectMode
     if missing:
         raise ArgenError(f"models folder {models_dir} has no model for object(s) {', '.join(map(str, missing))}")
     return {o.obj_id: o for o in load_models(models_dir, [str(i) for i in ids])}
+
+
+def dataset_pixel_centres(root: Path) -> str:
+    """The pixel-centre convention of a dataset's K: its argen.json's ``output.pixel_centres``, else "integer"
+    (BOP datasets of real sensors, and argen datasets made before the option existed)."""
+    try:
+        value = read_json(root / "argen.json", "argen.json")["config"]["output"].get("pixel_centres", "integer")
+    except (ArgenError, KeyError, TypeError, AttributeError):
+        return "integer"
+    return value if value in PIXEL_CENTRES else "integer"
 
 
 def default_max_depth(root: Path) -> float:
@@ -527,6 +545,8 @@ def run_label(req: LabelRequest) -> LabelSummary:
     """Label ``req.split`` of ``req.dataset`` into ``req.out`` (resuming an interrupted run)."""
     if req.cfg.max_depth is None:
         req = replace(req, cfg=replace(req.cfg, max_depth=default_max_depth(req.dataset)))
+    if req.cfg.pixel_centres is None:
+        req = replace(req, cfg=replace(req.cfg, pixel_centres=dataset_pixel_centres(req.dataset)))
     req.cfg.check()
     if req.workers < 1:
         raise ArgenError(f"--workers must be at least 1, got {req.workers}")

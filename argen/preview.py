@@ -76,7 +76,7 @@ def source_rgb(lf: LabelFile, frame: FrameLabels) -> np.ndarray | None:
     split = str(lf.attrs.get("source_split", ""))
     if not root.is_dir() or not split:
         return None
-    p = bop.image_path(root, split, frame.scene_id, frame.im_id, "rgb")
+    p = bop.rgb_path(root, split, frame.scene_id, frame.im_id)
     if not p.is_file():
         return None
     rgb = bop.read_rgb(p)
@@ -97,7 +97,8 @@ def preview_file(path: str | os.PathLike, index: int, out: str | os.PathLike) ->
 def preview_bop(dataset: str | os.PathLike, split: str, index: int, out: str | os.PathLike,
                 models: str | os.PathLike | None = None, cfg=None) -> FrameLabels:
     """Label frame ``index`` (in split order) of a BOP dataset on the fly and write its preview to ``out``."""
-    from argen.label import LabelConfig, Labeller, dataset_frames, default_max_depth, load_label_objects, resolve_models
+    from argen.label import (LabelConfig, Labeller, dataset_frames, dataset_pixel_centres, default_max_depth,
+                             load_label_objects, resolve_models)
 
     root = Path(dataset)
     scenes, frames = dataset_frames(root, split)
@@ -106,10 +107,12 @@ def preview_bop(dataset: str | os.PathLike, split: str, index: int, out: str | o
     sid, im = frames[index]
     scene = scenes[sid]
     cfg = cfg or LabelConfig()
-    if cfg.max_depth is None:
-        from dataclasses import replace
+    from dataclasses import replace
 
+    if cfg.max_depth is None:
         cfg = replace(cfg, max_depth=default_max_depth(root))
+    if cfg.pixel_centres is None:
+        cfg = replace(cfg, pixel_centres=dataset_pixel_centres(root))
     cfg.check()
     ids = sorted({g.obj_id for g in scene.gts[im]})
     objects = load_label_objects(resolve_models(root, Path(models) if models else None), ids)

@@ -47,6 +47,9 @@ class RealFrameMaker(FrameMaker):
         super().__init__(cfg, objects, out)
         self.recording = recording
         self.margin = occlusion_margin
+        if cfg.output.pixel_centres != "integer":
+            raise ArgenError("output.pixel_centres must stay 'integer' for a real recording: its calibrated K "
+                             "puts pixel centres at integer coordinates")
         if not np.allclose(self.K, recording.K):
             raise ArgenError("the template camera differs from the recording's intrinsics (use recording_config)")
 

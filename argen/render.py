@@ -614,6 +614,58 @@ class Renderer:
                 out[sid] = ids == sid
         return out
 
+    def outside_silhouettes(self, items: Sequence[RenderItem], K: np.ndarray, T_cam_world: np.ndarray,
+                            inside: dict[int, np.ndarray], znear: float = 0.05,
+                            zfar: float = 6.0) -> dict[int, tuple[int, list[int]]]:
+        """The parts of silhouettes beyond the image edge, as BOP's toolkit counts them (calc_gt_info renders
+        on a canvas 3 x the image each way, the image in its middle).
+
+        For every seg_id whose projected box leaves the image: (pixels of its silhouette outside the image,
+        BOP box [x, y, w, h] of the whole silhouette in image coordinates, unclipped: x and y can be negative).
+        The outside part is rendered as image-sized tiles around the image (only those the projected box
+        reaches), with the same rasteriser as ``full_masks``, so the counts add up exactly. inside: {seg_id:
+        (H, W) bool} the in-image silhouettes (``full_masks``). Other arguments as in ``render``.
+        """
+        W, H = self.width, self.height
+        K = np.asarray(K, dtype=np.float64)
+        by_id: dict[int, list[int]] = {}
+        for i, it in enumerate(items):
+            if int(it.seg_id) > 0:
+                by_id.setdefault(int(it.seg_id), []).append(i)
+        out = {}
+        for sid, idx in sorted(by_id.items()):
+            box = self._pixel_box(items, idx, K, T_cam_world, znear)
+            if box[0] >= 0 and box[1] >= 0 and box[2] <= W - 1 and box[3] <= H - 1:
+                continue
+            xs, ys, n_out = [], [], 0
+            m = inside.get(sid)
+            if m is not None and m.any():
+                yy, xx = np.nonzero(m)
+                xs += [xx.min(), xx.max()]
+                ys += [yy.min(), yy.max()]
+            for ty in (-1, 0, 1):
+                for tx in (-1, 0, 1):
+                    x0, y0 = tx * W, ty * H
+                    if (tx == 0 and ty == 0) or box[2] < x0 or box[0] > x0 + W - 1 or box[3] < y0 \
+                            or box[1] > y0 + H - 1:
+                        continue
+                    Kt = K.copy()
+                    Kt[0, 2] -= x0
+                    Kt[1, 2] -= y0
+                    self._set_camera(Kt, T_cam_world, znear, zfar)
+                    nodes = self._place([items[i] for i in idx])
+                    tile = _decode_seg(self._pass(pyrender.RenderFlags.SEG,
+                                                  {n: _seg_colour(sid) for n in nodes})[0]) == sid
+                    if tile.any():
+                        n_out += int(tile.sum())
+                        yy, xx = np.nonzero(tile)
+                        xs += [xx.min() + x0, xx.max() + x0]
+                        ys += [yy.min() + y0, yy.max() + y0]
+            bbox = [int(min(xs)), int(min(ys)), int(max(xs) - min(xs) + 1), int(max(ys) - min(ys) + 1)] if xs \
+                else [-1, -1, -1, -1]
+            out[sid] = (n_out, bbox)
+        return out
+
     def _pixel_box(self, items, idx, K, T_cam_world, znear) -> np.ndarray:
         """(4,) [u0, v0, u1, v1] enclosing the projected bounding boxes of ``items[idx]``, pixels."""
         K = np.asarray(K, dtype=np.float64)

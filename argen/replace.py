@@ -185,7 +185,8 @@ def _pose(R: np.ndarray, t: np.ndarray) -> np.ndarray:
 
 def replace_frame(renderer, scene: bop.BopScene, im_id: int, target: int, objs: dict[int, ObjectModel],
                   step_deg: float, noise: NoiseConfig | None, rng: np.random.Generator) -> list[dict]:
-    """The rotated copies of one frame: one dict per copy with rgb, depth, gts [(obj_id, R, t)], masks, log."""
+    """The rotated copies of one frame: one dict per copy with rgb, depth, gts [(obj_id, R, t)], masks (full,
+    visible), outside ({gt index: the part of its silhouette beyond the image edge}), log."""
     cam = scene.cameras[im_id]
     K = cam.K
     rgb = scene.read_rgb(im_id)
@@ -198,6 +199,7 @@ def replace_frame(renderer, scene: bop.BopScene, im_id: int, target: int, objs: 
     items = _items(objs, gts, poses)
     alone = renderer.render_depth(items[target:target + 1], K, I4, Z_NEAR, Z_FAR)
     full0 = renderer.full_masks(items, K, I4, Z_NEAR, Z_FAR)
+    beyond0 = renderer.outside_silhouettes(items, K, I4, full0, Z_NEAR, Z_FAR)
     others = np.zeros(depth.shape, bool)
     for i in range(len(gts)):
         if i != target:
@@ -232,20 +234,24 @@ def replace_frame(renderer, scene: bop.BopScene, im_id: int, target: int, objs: 
         changed = front | info["removed"]
         if noise is not None and noise.enabled:
             depth_k = np.where(changed, apply_noise(depth_k, K, noise, rng), depth_k).astype(np.float32)
-        masks, gt_out = [], []
+        masks, gt_out, outside = [], [], {}
         for i, g in enumerate(gts):
             if i == target:
                 masks.append((ob.depth > 0, seg == 1))
                 gt_out.append((g.obj_id, T_k[:3, :3], T_k[:3, 3]))
+                beyond = renderer.outside_silhouettes([item], K, I4, {1: ob.depth > 0}, Z_NEAR, Z_FAR).get(1)
             else:
                 masks.append((full0[i + 1], vis_other[i] & ~front))
                 gt_out.append((g.obj_id, g.R, g.t))
+                beyond = beyond0.get(i + 1)
+            if beyond is not None:
+                outside[i] = beyond
         log = {"src_scene_id": scene.scene_id, "src_im_id": im_id, "target_gt_index": target,
                "obj_id": gts[target].obj_id, "angle_deg": float(k * step_deg), "axis": axis_from,
                "axis_cam": [float(v) for v in axis], "removed_px": int(info["removed"].sum()),
                "filled_px": info["filled_px"], "invalid_px": info["invalid_px"],
                "fill": "plane" if info["plane"] is not None else "invalid"}
-        out.append({"rgb": rgb_k, "depth": depth_k, "gts": gt_out, "masks": masks, "log": log,
+        out.append({"rgb": rgb_k, "depth": depth_k, "gts": gt_out, "masks": masks, "outside": outside, "log": log,
                     "T_cam_world": cam.T_cam_world})
     return out
 
@@ -327,7 +333,8 @@ def replace_dataset(dataset: str | Path, out: str | Path, split: str = "test", m
             _write_frame(out, split, sid, oim, c, depth_scale)
             js["scene_camera"][str(oim)] = bop.camera_entry(sc.cameras[im].K, depth_scale, c["T_cam_world"])
             js["scene_gt"][str(oim)] = [bop.gt_entry(o, R, t) for o, R, t in c["gts"]]
-            js["scene_gt_info"][str(oim)] = [bop.gt_info_entry(mf, mv, c["depth"]) for mf, mv in c["masks"]]
+            js["scene_gt_info"][str(oim)] = [bop.gt_info_entry(mf, mv, c["depth"], c["outside"].get(g))
+                                             for g, (mf, mv) in enumerate(c["masks"])]
             log.append({"scene_id": sid, "im_id": oim, **c["log"]})
             written += 1
     for sid, js in jsons.items():
@@ -342,4 +349,4 @@ def _write_frame(root: Path, split: str, sid: int, im: int, c: dict, depth_scale
         bop.write_mask(bop.mask_path(root, split, sid, im, g, visib=False), m_full)
         bop.write_mask(bop.mask_path(root, split, sid, im, g, visib=True), m_vis)
     bop.write_depth(bop.image_path(root, split, sid, im, "depth"), c["depth"], depth_scale)
-    bop.write_png(bop.image_path(root, split, sid, im, "rgb"), c["rgb"])
+    bop.write_rgb(root, split, sid, im, c["rgb"])

@@ -67,7 +67,7 @@ def test_bop_json_files_follow_the_format(clean):
         assert len(cam["cam_K"]) == 9 and cam["cam_K"][0] == pytest.approx(572.4114)
         assert cam["depth_scale"] == 0.1 and len(cam["cam_R_w2c"]) == 9
         assert 500 < np.linalg.norm(cam["cam_t_w2c"]) < 1300  # mm: the camera is 0.6 .. 1.15 m away
-        assert (d / "rgb" / f"{int(k):06d}.png").is_file() and (d / "depth" / f"{int(k):06d}.png").is_file()
+        assert (d / "rgb" / f"{int(k):06d}.jpg").is_file() and (d / "depth" / f"{int(k):06d}.png").is_file()
         for g, (gt, info) in enumerate(zip(gts[k], infos[k])):
             R = np.array(gt["cam_R_m2c"]).reshape(3, 3)
             assert np.allclose(R @ R.T, np.eye(3), atol=1e-6)

@@ -161,7 +161,7 @@ def test_predict_on_bop_frame_depth_png_and_ply(dataset, tmp_path):
     K = cam.K
     depth_png = bop.image_path(ds, "train_pbr", 0, im_id, "depth")
     inp2 = load_input(str(depth_png), K=f"{K[0, 0]},{K[1, 1]},{K[0, 2]},{K[1, 2]}", depth_scale=cam.depth_scale,
-                      rgb=bop.image_path(ds, "train_pbr", 0, im_id, "rgb"))
+                      rgb=bop.rgb_path(ds, "train_pbr", 0, im_id))
     np.testing.assert_allclose(inp2.features, inp.features, atol=1e-6)
 
     # ... and as a PLY cloud (metres, camera frame), drawn over a splat of the cloud

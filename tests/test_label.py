@@ -116,7 +116,7 @@ def test_features_colours_normals_and_subsampling(builtin_ds):
         fr = lf.frame(1)
         assert len(fr) == 20000  # the frame had more valid pixels
         assert len(np.unique(fr.pixel[:, 0] * 10000 + fr.pixel[:, 1])) == len(fr)
-        rgb = read_rgb(dataset / f"train_pbr/000000/rgb/{fr.im_id:06d}.png")
+        rgb = read_rgb(dataset / f"train_pbr/000000/rgb/{fr.im_id:06d}.jpg")
         np.testing.assert_allclose(fr.features[:, 3:6] * 255, rgb[fr.pixel[:, 0], fr.pixel[:, 1]], atol=1e-3)
         n = fr.features[:, 6:9]
         np.testing.assert_allclose(np.linalg.norm(n, axis=1), 1, atol=1e-5)
@@ -200,7 +200,7 @@ def test_preview_of_file_and_of_bop_scene(builtin_ds, tmp_path):
         r = cli("preview", src, "--frame", "1", "--out", out)
         assert r.exit_code == 0, r.output
         img = read_rgb(out)
-        rgb = read_rgb(dataset / f"train_pbr/000000/rgb/{im_id:06d}.png")
+        rgb = read_rgb(dataset / f"train_pbr/000000/rgb/{im_id:06d}.jpg")
         changed = np.any(img != rgb, axis=2)
         assert 0.002 < changed.mean() < 0.5  # tinted object points and box lines, the rest untouched
 

@@ -55,8 +55,8 @@ def test_sigkill_at_any_moment_then_rerun_gives_the_same_dataset(reference, tmp_
     out = tmp_path / "ds"
     proc = subprocess.Popen([*ARGEN, *ARGS, "--out", str(out)], stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
     deadline = time.time() + 120
-    rgb = out / "train_pbr" / "000000" / "rgb"
-    while time.time() < deadline and len(list(rgb.glob("*.png"))) < 2:
+    depth = out / "train_pbr" / "000000" / "depth"
+    while time.time() < deadline and len(list(depth.glob("*.png"))) < 2:
         time.sleep(0.02)
     proc.send_signal(signal.SIGKILL)
     proc.wait()

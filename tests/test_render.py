@@ -298,3 +298,30 @@ def test_max_faces_decimates_with_small_error():
     assert len(r._entries["sphere"].mesh.primitives[0].indices) <= 800
     radius = np.linalg.norm(backproject(depth, K, T_cam), axis=1)
     assert (depth > 0).sum() > 1500 and np.abs(radius - 0.1).max() < 2e-3
+
+
+def test_silhouettes_cut_by_the_image_edge_count_whole_like_a_3x_canvas(renderer):
+    """outside_silhouettes (tiles around the image) equals rendering on BOP calc_gt_info's 3x canvas."""
+    T_cam = look_at((0.0, -0.5, 0.5), (0.0, 0.0, 0.0))
+    items = [RenderItem("box", coloured_box(EXT), pose((0, 0, a), (x, y, 0.04)), i + 1)
+             for i, (a, x, y) in enumerate([(0.3, -0.33, 0.1), (0.7, 0.02, 0.0), (1.2, 0.3, -0.25)])]
+    full = renderer.full_masks(items, K, T_cam)
+    beyond = renderer.outside_silhouettes(items, K, T_cam, full)
+    big = Renderer(3 * W, 3 * H)
+    try:
+        K3 = K.copy()
+        K3[0, 2] += W
+        K3[1, 2] += H
+        canvas = big.full_masks(items, K3, T_cam)
+    finally:
+        big.close()
+    assert 2 in full and 2 not in beyond  # the middle box is wholly in view: nothing to add
+    assert {1, 3} <= set(beyond)  # the others leave the image
+    for sid in (1, 3):
+        whole = canvas[sid]
+        assert np.array_equal(whole[H:2 * H, W:2 * W], full[sid])  # the same rasteriser in the image
+        n_out, bbox = beyond[sid]
+        assert n_out > 100 and n_out + full[sid].sum() == whole.sum()
+        ys, xs = np.nonzero(whole)
+        assert bbox == [xs.min() - W, ys.min() - H, xs.max() - xs.min() + 1, ys.max() - ys.min() + 1]
+        assert bbox[0] < 0 or bbox[1] < 0 or bbox[0] + bbox[2] > W or bbox[1] + bbox[3] > H
