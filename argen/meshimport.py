@@ -242,9 +242,9 @@ def edge_counts(mesh: trimesh.Trimesh) -> np.ndarray:
 def repair(mesh: trimesh.Trimesh, path: Path) -> tuple[trimesh.Trimesh, list[str]]:
     """Repair what trimesh can; raise ArgenError for a mesh that cannot be a solid object.
 
-    Closed means every edge is used by an even number of faces: a single closed surface (2 faces per edge)
-    or closed parts that touch along edges (as meshes made by joining parts are). Edges used once are holes:
-    their loops are capped; an edge used 3 times cannot be repaired.
+    Closed means no edge is used by one face only: a single closed surface (2 faces per edge), or closed
+    parts that touch or overlap (as assemblies exported as one mesh are: 3 or more faces at some edges).
+    Edges used once are holes: their loops are capped when they form simple loops, else the mesh is refused.
     """
     notes = []
     n_v, n_f = len(mesh.vertices), len(mesh.faces)
@@ -267,13 +267,12 @@ def repair(mesh: trimesh.Trimesh, path: Path) -> tuple[trimesh.Trimesh, list[str
             mesh, n = _close_holes(mesh)
             if n:
                 mesh.merge_vertices()
-        if np.any(edge_counts(mesh) % 2 == 1):
+        if np.any(edge_counts(mesh) == 1):
             raise ArgenError(f"{path}: open mesh that argen cannot close (its boundary is not a set of simple "
                              "loops); close it in a mesh editor")
         notes.append("closed holes in the surface")
-    if np.any(edge_counts(mesh) % 2 == 1):
-        raise ArgenError(f"{path}: non-manifold mesh (edges shared by an odd number of faces, more than two); "
-                         "argen cannot repair it")
+    if np.any(edge_counts(mesh) > 2):
+        notes.append("kept edges shared by more than two faces (parts that touch)")
     if mesh.is_watertight:  # one 2-manifold surface: winding and orientation can be fixed
         if not mesh.is_winding_consistent:
             trimesh.repair.fix_winding(mesh)

@@ -163,3 +163,19 @@ def test_without_camera_pose_the_axis_is_the_fitted_plane_normal(data, tmp_path)
         assert e["axis"] == "plane fit" and e["fill"] == "plane"
         n = truth[str(e["src_im_id"])]
         assert np.degrees(np.arccos(np.clip(np.dot(e["axis_cam"], n), -1, 1))) < 1.5
+
+
+def test_replace_takes_a_plain_mesh_folder_as_models(data, tmp_path):
+    """--models with plain meshes named obj_NNNNNN (no models_info.json): imported on the fly, same frames."""
+    root, _ = data
+    meshes = tmp_path / "meshes"
+    meshes.mkdir()
+    for p in (root / "src" / "models").glob("obj_*.ply"):
+        bop.read_mesh(p).export(meshes / f"{p.stem}.stl")  # STL in metres, no colours
+    s = replace_dataset(root / "src", tmp_path / "o", split=SPLIT, models=meshes, fraction=0.5, step_deg=120,
+                        seed=1, noise=None, progress=False)
+    assert "imported" in s.notes[0] and s.written == 3
+    ref = bop.load_scene(root / "out", SPLIT, 0)
+    new = bop.load_scene(tmp_path / "o", SPLIT, 0)
+    im_r, im_n = ref.im_ids[4], new.im_ids[1]  # both 120 degrees
+    assert np.array_equal(ref.read_mask(im_r, 0, visib=False), new.read_mask(im_n, 0, visib=False))
