@@ -148,7 +148,7 @@ class FrameMaker:
         t5 = time.perf_counter()
         timing["render"] = timing.get("render", 0.0) + t5 - t4
         if cfg.noise.enabled:
-            noisy = apply_noise(depth, K, cfg.noise, rng_noise)
+            noisy = apply_noise(depth, K, cfg.noise, rng_noise, rgb=rgb)
             depth = np.where(front, noisy, depth).astype(np.float32) if noise_virtual_only else noisy
         timing["noise"] = time.perf_counter() - t5
         gts, masks = [], []

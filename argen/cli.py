@@ -52,22 +52,27 @@ def parse_sets(sets: list[str]) -> dict:
     return out
 
 
-def load_config(scene: str, seed: Optional[int], noise: Optional[str], sets: list[str], objects: Optional[str]):
+def load_config(scene: str, seed: Optional[int], noise: Optional[str], sets: list[str], objects: Optional[str],
+                sensor: Optional[str] = None):
     from argen.config import load_template, override
 
-    cfg = load_template(scene)
+    cfg = load_template(scene, sensor=sensor)
     dotted = parse_sets(sets)
     if seed is not None:
         dotted["seed"] = seed
     if noise is not None:
-        if noise not in ("none", "kinect"):
-            raise ArgenError(f"--noise must be 'none' or 'kinect', got '{noise}'")
-        dotted["noise.enabled"] = noise == "kinect"
+        if noise not in NOISE_CHOICES:
+            raise ArgenError(f"--noise must be 'on' or 'none' ('kinect' = 'on'), got '{noise}'")
+        dotted["noise.enabled"] = noise != "none"
     if objects is not None:
         dotted["objects"] = [o for o in objects.split(",") if o.strip()]
         if not dotted["objects"]:
             raise ArgenError("--objects names no object")
     return override(cfg, dotted) if dotted else cfg
+
+
+#: --noise values: the sensor profile's noise on ("kinect", its old name, kept), or none.
+NOISE_CHOICES = ("on", "kinect", "none")
 
 
 def parse_shard(text: Optional[str]) -> tuple[int, int]:
@@ -105,7 +110,10 @@ def capture_sim(
                                            "plain meshes (imported on the fly); default: built-in objects"),
     objects: Optional[str] = typer.Option(None, "--objects", help="comma-separated object names or ids"),
     seed: Optional[int] = typer.Option(None, "--seed", help="random seed (default: the template's)"),
-    noise: Optional[str] = typer.Option(None, "--noise", help="'kinect' or 'none' (default: the template's)"),
+    noise: Optional[str] = typer.Option(None, "--noise", help="'on' (the sensor's noise model) or 'none' "
+                                        "(default: the template's)"),
+    sensor: Optional[str] = typer.Option(None, "--sensor", help="sensor profile: kinect_v1 (default), kinect_v2 "
+                                         "(time of flight), realsense_d435 (active stereo)"),
     workers: int = typer.Option(1, "--workers", help="processes, each with its own renderer"),
     overwrite: bool = typer.Option(False, "--overwrite", help="replace an output folder made with other options"),
     sets: list[str] = typer.Option([], "--set", help="override any template key, e.g. --set camera.distance=[0.5,1.0]"),
@@ -121,7 +129,7 @@ def capture_sim(
         raise ArgenError(f"--frames must be at least 1, got {frames}")
     if workers < 1:
         raise ArgenError(f"--workers must be at least 1, got {workers}")
-    cfg = load_config(scene, seed, noise, sets, objects)
+    cfg = load_config(scene, seed, noise, sets, objects, sensor)
     objs, notes = load_any_models(models, cfg.objects or None)
     for line in notes:
         typer.echo(line, err=True)

@@ -12,7 +12,7 @@ from argen.errors import ArgenError
 
 def register(app: typer.Typer) -> None:
     """Add the capture and replace commands to ``app``."""
-    from argen.cli import check_placeable, load_config, user_errors  # argen.cli imports this module at its end
+    from argen.cli import NOISE_CHOICES, check_placeable, load_config, user_errors  # argen.cli imports this module at its end
 
     @app.command("capture")
     @user_errors
@@ -26,8 +26,10 @@ def register(app: typer.Typer) -> None:
         scene: str = typer.Option("linemod", "--scene", help="template (board, placement, noise) or a YAML file"),
         objects: Optional[str] = typer.Option(None, "--objects", help="comma-separated object names or ids"),
         seed: Optional[int] = typer.Option(None, "--seed", help="random seed of the placements"),
-        noise: Optional[str] = typer.Option(None, "--noise", help="'kinect' or 'none': sensor noise on the virtual "
+        noise: Optional[str] = typer.Option(None, "--noise", help="'on' or 'none': sensor noise on the virtual "
                                             "objects' depth (default: the template's)"),
+        sensor: Optional[str] = typer.Option(None, "--sensor", help="sensor profile of the noise on the virtual "
+                                             "objects (the intrinsics are the recording's)"),
         depth_scale: Optional[float] = typer.Option(None, "--depth-scale", help="mm per depth-PNG unit "
                                                     "(overrides camera.json; 1.0 for RealSense / Azure Kinect)"),
         occlusion_margin: float = typer.Option(0.003, "--occlusion-margin", help="metres a real surface must be in "
@@ -46,7 +48,7 @@ def register(app: typer.Typer) -> None:
         if workers < 1:
             raise ArgenError(f"--workers must be at least 1, got {workers}")
         rec = open_recording(recording, depth_scale)
-        cfg = load_config(scene, seed, noise, sets, objects)
+        cfg = load_config(scene, seed, noise, sets, objects, sensor)
         objs, notes = load_any_models(models, cfg.objects or None)
         for line in notes:
             typer.echo(line, err=True)
@@ -70,8 +72,10 @@ def register(app: typer.Typer) -> None:
         fraction: float = typer.Option(0.1, "--fraction", help="share of the frames to use (the paper: 0.1)"),
         step_deg: float = typer.Option(30.0, "--step-deg", help="rotation step about the plane normal, degrees"),
         seed: int = typer.Option(0, "--seed", help="frame choice, plane fit and noise seed"),
-        noise: str = typer.Option("kinect", "--noise", help="'kinect' or 'none': sensor noise on the changed pixels"),
+        noise: str = typer.Option("on", "--noise", help="'on' or 'none': sensor noise on the changed pixels"),
         scene: str = typer.Option("linemod", "--scene", help="template whose noise model to use"),
+        sensor: Optional[str] = typer.Option(None, "--sensor", help="sensor profile whose noise model to use "
+                                             "(default: the template's)"),
         overwrite: bool = typer.Option(False, "--overwrite", help="replace a non-empty output folder"),
         quiet: bool = typer.Option(False, "--quiet", help="no progress bar"),
     ):
@@ -79,9 +83,9 @@ def register(app: typer.Typer) -> None:
         from argen.config import load_template
         from argen.replace import replace_dataset
 
-        if noise not in ("none", "kinect"):
-            raise ArgenError(f"--noise must be 'none' or 'kinect', got '{noise}'")
-        noise_cfg = load_template(scene).noise if noise == "kinect" else None
+        if noise not in NOISE_CHOICES:
+            raise ArgenError(f"--noise must be 'on' or 'none' ('kinect' = 'on'), got '{noise}'")
+        noise_cfg = load_template(scene, sensor=sensor).noise if noise != "none" else None
         summary = replace_dataset(dataset, out, split=split, models=models, obj_id=obj_id, fraction=fraction,
                                   step_deg=step_deg, seed=seed, noise=noise_cfg, overwrite=overwrite,
                                   progress=not quiet)

@@ -101,9 +101,11 @@ class ARConfig:
 
 @dataclass
 class NoiseConfig:
-    """Kinect v1 style depth-sensor model (Nguyen et al. 2012 for the axial term)."""
+    """Depth-sensor model (``argen.noise``). The defaults are the plain Kinect v1 model of Nguyen et al. 2012;
+    the sensor profiles (``argen/sensors/*.yaml``) switch on and calibrate the other effects."""
 
     enabled: bool = True
+    model: str = "structured_light"  # structured_light (Kinect v1), tof (Kinect v2 / Azure), stereo (RealSense)
     axial_a: float = 0.0012  # metres: sigma_z = a + b (z - z0)^2
     axial_b: float = 0.0019  # 1/metre
     axial_z0: float = 0.4  # metres
@@ -117,6 +119,19 @@ class NoiseConfig:
     edge_dropout: float = 0.6  # probability of losing a pixel next to a discontinuity
     grazing_deg: float = 78.0  # incidence angles beyond this return nothing
     random_dropout: float = 0.005  # share of pixels lost at random
+    correlated_sigma: float = 0.0  # metres at 1 m (grows with z^2): spatially correlated axial error
+    correlated_px: float = 4.0  # its correlation radius (a 9 x 9 matching window: 4 px)
+    shadow: bool = False  # holes where the projector (or the second camera) cannot see: `baseline` along +x
+    flying: float = 0.0  # probability that a kept pixel at a discontinuity takes a depth between its sides
+    edge_fatten_px: int = 0  # the nearer side of a discontinuity spreads this far into the farther one
+    multipath: float = 0.0  # ToF: gain of the extra depth in concave regions (z minus its local mean)
+    multipath_px: float = 6.0  # ToF: radius of that local mean
+    dark_dropout: float = 0.0  # probability of losing a black pixel (falls linearly to 0 at dark_level)
+    dark_level: float = 0.12  # luminance (0..1) below which dark dropout starts
+    textureless_dropout: float = 0.0  # stereo: probability of losing a pixel whose 7x7 patch is flat
+    textureless_level: float = 0.01  # std of luminance (0..1) below which a patch counts as flat
+    scale_sigma: float = 0.0  # per-frame relative error of the depth scale (std)
+    offset_sigma: float = 0.0  # per-frame depth offset, metres (std)
 
 
 @dataclass
@@ -129,6 +144,8 @@ class OutputConfig:
     # so its calc_gt_masks reproduces argen's masks exactly; argen label reads the choice from argen.json)
     pixel_centres: str = "integer"
 
+
+NOISE_MODELS = ("structured_light", "tof", "stereo")
 
 #: output.pixel_centres values and the offset (pixels) from a file's K to the K that images are made with.
 PIXEL_CENTRES = {"integer": 0.0, "half": -0.5}
@@ -150,6 +167,7 @@ class TemplateConfig:
 
     name: str = "linemod"
     description: str = ""
+    sensor: str = "kinect_v1"  # argen/sensors/NAME.yaml: intrinsics, resolution, range and noise
     seed: int = 0
     objects: list[str] = field(default_factory=list)  # names or ids; empty = all available
     camera: CameraConfig = field(default_factory=CameraConfig)
@@ -165,13 +183,38 @@ class TemplateConfig:
 # --------------------------------------------------------------------------------------- loading
 
 
+SENSORS_DIR = Path(__file__).resolve().parent / "sensors"
+
+
 def available_templates() -> list[str]:
     """Names of the built-in templates."""
     return sorted(p.stem for p in TEMPLATES_DIR.glob("*.yaml"))
 
 
-def load_template(name_or_path: str | Path) -> TemplateConfig:
-    """Load a built-in template by name, or a YAML file by path, into a :class:`TemplateConfig`."""
+def available_sensors() -> list[str]:
+    """Names of the built-in sensor profiles."""
+    return sorted(p.stem for p in SENSORS_DIR.glob("*.yaml"))
+
+
+def load_sensor(name: str) -> dict:
+    """A sensor profile (``argen/sensors/NAME.yaml``): {name, description, kind, sources, camera, noise}."""
+    path = SENSORS_DIR / f"{name}.yaml"
+    if not path.is_file():
+        raise ArgenError(f"unknown sensor '{name}' (available: {', '.join(available_sensors())})")
+    data = yaml.safe_load(path.read_text()) or {}
+    for key in ("camera", "noise"):
+        if not isinstance(data.get(key), dict):
+            raise ArgenError(f"sensor profile {path.name} has no '{key}' section")
+    return data
+
+
+def load_template(name_or_path: str | Path, sensor: str | None = None) -> TemplateConfig:
+    """Load a built-in template by name, or a YAML file by path, into a :class:`TemplateConfig`.
+
+    The sensor profile (``sensor``, else the template's ``sensor`` key, else kinect_v1) gives the camera's
+    intrinsics and resolution and the noise model; keys the template sets itself take precedence over the
+    profile's, and ``--set`` (:func:`override`) over both.
+    """
     path = Path(name_or_path)
     if not path.suffix:
         path = TEMPLATES_DIR / f"{name_or_path}.yaml"
@@ -187,6 +230,16 @@ def load_template(name_or_path: str | Path) -> TemplateConfig:
         raise ArgenError(f"template {path} is not valid YAML: {str(exc).splitlines()[0]}") from exc
     if data is None:
         data = {}
+    if not isinstance(data, dict):
+        raise ArgenError(f"template {path.name}: expected a mapping, got {type(data).__name__}")
+    name = sensor or data.get("sensor") or TemplateConfig.sensor
+    profile = load_sensor(str(name))
+    data = dict(data, sensor=str(name))
+    for key in ("camera", "noise"):
+        own = data.get(key) or {}
+        if not isinstance(own, dict):
+            raise ArgenError(f"{path.name}: expected a mapping for {key}")
+        data[key] = {**profile[key], **own}
     return from_dict(TemplateConfig, data, where=path.name)
 
 
@@ -292,6 +345,14 @@ def validate(obj: Any, where: str = "config") -> None:
         for name in ("edge_dropout", "random_dropout"):
             _check(0 <= getattr(obj, name) <= 1, where, f"noise {name} must lie in [0, 1]")
         _check(0 < obj.grazing_deg <= 90, where, "noise grazing_deg must lie in (0, 90]")
+        _check(obj.model in NOISE_MODELS, where, f"noise model must be one of {', '.join(NOISE_MODELS)}, "
+                                                 f"got '{obj.model}'")
+        for name in ("flying", "dark_dropout", "textureless_dropout"):
+            _check(0 <= getattr(obj, name) <= 1, where, f"noise {name} must lie in [0, 1]")
+        for name in ("correlated_sigma", "correlated_px", "multipath", "multipath_px", "scale_sigma",
+                     "offset_sigma", "dark_level", "textureless_level"):
+            _check(getattr(obj, name) >= 0, where, f"noise {name} must be non-negative")
+        _check(obj.edge_fatten_px >= 0, where, "noise edge_fatten_px must be non-negative")
     elif isinstance(obj, OutputConfig):
         _check(obj.frames_per_scene >= 1, where, "output frames_per_scene must be at least 1")
         _check(obj.depth_scale > 0, where, "output depth_scale must be positive")

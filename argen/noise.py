@@ -1,4 +1,4 @@
-"""Kinect v1 style depth-sensor model: lateral jitter, axial noise, disparity quantisation, holes.
+"""Depth-sensor models: lateral jitter, axial noise, disparity quantisation, holes, and the profile effects.
 
 The axial model is Nguyen, Izadi & Lovell (2012), "Modeling Kinect Sensor Noise for Improved 3D
 Reconstruction and Tracking":
@@ -14,11 +14,29 @@ quantisation included. :func:`apply_noise` therefore draws its Gaussian part wit
 where q(z) is the depth step between neighbouring disparity levels at depth z and q^2/12 the
 variance of rounding to them, so that Gaussian + quantisation together have the model's sigma_z.
 
+Beyond that per-pixel model, the sensor profiles (``argen/sensors/*.yaml``, ``--sensor``) switch on what
+real depth sensors also do (see :func:`apply_noise` for the order):
+
+- a spatially correlated axial error (structured light and stereo match 9 x 9 or 7 x 7 windows, so
+  neighbouring pixels err together; Smisek et al. 2011 and Herrera et al. 2012 measured low-frequency
+  depth distortions of a few mm on Kinect v1),
+- a per-frame systematic error of depth scale and offset (Herrera et al. 2012: per-device scale and
+  offset; Khoshelham & Elberink 2012: systematic errors after calibration),
+- the IR shadow of the projector 7.5 cm beside the camera (stereo: the second camera's occlusion),
+- mixed ("flying") pixels at depth discontinuities, and ToF multipath in concave regions (Sarbolandi
+  et al. 2015), stereo edge fattening (Intel's D400 tuning guide),
+- dropout at grazing angles, on dark surfaces and (stereo) on flat, textureless patches.
+
+The kinect_v1 profile is calibrated with ``bench/bench_noise.py`` against a real LineMOD Kinect frame
+measured the same way (distance of the depth to the ground-truth surface at 0.95-1.1 m: median 2.39 mm,
+p95 6.14 mm; argen: 1.94 / 6.40 mm; BENCHMARKS.md). Sources of each profile's numbers are listed in its file.
+
 All depths are metres, angles radians; a depth of 0 means "no measurement" on input and output.
 """
 
 from __future__ import annotations
 
+import cv2
 import numpy as np
 from scipy.special import ndtr
 
@@ -242,12 +260,86 @@ def _discontinuities(z: np.ndarray, threshold: float) -> np.ndarray:
     return edge
 
 
-def apply_noise(depth: np.ndarray, K: np.ndarray, cfg: NoiseConfig, rng: np.random.Generator) -> np.ndarray:
+def correlated_field(h: int, w: int, radius_px: float, rng: np.random.Generator) -> np.ndarray:
+    """(H, W) float32 Gaussian field with unit std whose values are correlated over ``radius_px`` pixels: white
+    noise averaged over (2r+1) x (2r+1) windows (a structured-light sensor matches such windows, so neighbouring
+    pixels err together), rescaled to unit variance."""
+    k = 2 * int(round(radius_px)) + 1
+    white = rng.standard_normal((h, w), dtype=np.float32)
+    if k <= 1:
+        return white
+    return cv2.blur(white, (k, k), borderType=cv2.BORDER_REFLECT) * np.float32(k)
+
+
+def shadow_mask(z: np.ndarray, K: np.ndarray, baseline: float, tol: float = 0.01) -> np.ndarray:
+    """(H, W) bool: pixels whose surface point the second viewpoint cannot see (IR shadow of a structured-light
+    projector, left-right occlusion of a stereo pair). z: (H, W) float32 metres, 0 = none; the second viewpoint
+    sits ``baseline`` metres along the camera's +x, rectified (same rows, same K). A point is hidden when another
+    point of its row projects to the same column of the second view more than ``tol`` x its depth nearer."""
+    h, w = z.shape
+    valid = z > 0
+    rows, cols = np.nonzero(valid)
+    if len(rows) == 0:
+        return np.zeros((h, w), bool)
+    zz = z[rows, cols]
+    # column in the second view: u' = u - fx * baseline / z (rectified pair, disparity fx b / z)
+    up = np.rint(cols - float(K[0][0]) * baseline / zz).astype(np.int64)
+    inside = (up >= 0) & (up < w)
+    key = rows[inside] * w + up[inside]
+    zbuf = np.full(h * w, np.inf, np.float32)
+    np.minimum.at(zbuf, key, zz[inside])
+    hidden = np.zeros(len(rows), bool)
+    hidden[inside] = zz[inside] > zbuf[key] * (1.0 + tol)
+    out = np.zeros((h, w), bool)
+    out[rows[hidden], cols[hidden]] = True
+    return out
+
+
+def _minmax3(z: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """3x3 neighbourhood min (of measured pixels) and max of z (H, W), float32."""
+    big = np.where(z > 0, z, np.float32(np.inf))
+    lo = cv2.erode(big, np.ones((3, 3), np.uint8), borderType=cv2.BORDER_REPLICATE)
+    hi = cv2.dilate(z, np.ones((3, 3), np.uint8), borderType=cv2.BORDER_REPLICATE)
+    return np.where(np.isfinite(lo), lo, z).astype(np.float32), hi.astype(np.float32)
+
+
+def _fatten(z: np.ndarray, edge: np.ndarray, px: int) -> np.ndarray:
+    """Stereo edge fattening: within ``px`` of a discontinuity the nearer surface's depth spreads over the
+    farther one (the matching window there is dominated by the nearer, textured side)."""
+    k = 2 * px + 1
+    big = np.where(z > 0, z, np.float32(np.inf))
+    near = cv2.erode(big, np.ones((k, k), np.uint8), borderType=cv2.BORDER_REPLICATE)
+    band = cv2.dilate(edge.astype(np.uint8), np.ones((k, k), np.uint8)) > 0
+    take = band & (z > 0) & np.isfinite(near)
+    return np.where(take, near, z).astype(np.float32)
+
+
+def _multipath(z: np.ndarray, gain: float, radius_px: float) -> np.ndarray:
+    """ToF multipath: light scattered between surfaces that face each other (concave corners, an object on a
+    table) arrives late, so depth reads long there. Approximated as ``gain`` x how far a pixel lies behind the
+    mean depth of its neighbourhood (zero on planes and convex parts)."""
+    k = 2 * int(round(radius_px)) + 1
+    valid = (z > 0).astype(np.float32)
+    s = cv2.blur(z * valid, (k, k), borderType=cv2.BORDER_REFLECT)
+    n = cv2.blur(valid, (k, k), borderType=cv2.BORDER_REFLECT)
+    mean = np.where(n > 0, s / np.maximum(n, np.float32(1e-6)), z)
+    return np.where(z > 0, z + np.float32(gain) * np.maximum(z - mean, 0), 0).astype(np.float32)
+
+
+def _luminance(rgb: np.ndarray) -> np.ndarray:
+    rgb = np.asarray(rgb, np.float32) / np.float32(255.0)
+    return rgb[..., 0] * np.float32(0.299) + rgb[..., 1] * np.float32(0.587) + rgb[..., 2] * np.float32(0.114)
+
+
+def apply_noise(depth: np.ndarray, K: np.ndarray, cfg: NoiseConfig, rng: np.random.Generator,
+                rgb: np.ndarray | None = None) -> np.ndarray:
     """Turn a clean rendered depth map into a Kinect-like measurement.
 
     depth: (H, W) float metres, 0 (or non-finite) = no measurement; K: (3, 3) pixels (fx = K[0, 0]
-    is used for disparity); rng: the frame's generator. Returns (H, W) float32 metres, 0 = missing.
-    With ``cfg.enabled`` False it returns an unchanged float32 copy and draws nothing.
+    is used for disparity); rng: the frame's generator; rgb: (H, W, 3) uint8 colour of the same view, used
+    by the dark and textureless dropouts (skipped without it). Returns (H, W) float32 metres, 0 = missing.
+    With ``cfg.enabled`` False it returns an unchanged float32 copy and draws nothing. Effects whose
+    parameter is 0 (the NoiseConfig defaults) draw nothing, so they leave the other effects' draws alone.
 
     Steps, all vectorised:
       1. incidence angles from the clean depth (:func:`normals_from_depth`, :func:`incidence_angle`;
@@ -262,6 +354,17 @@ def apply_noise(depth: np.ndarray, K: np.ndarray, cfg: NoiseConfig, rng: np.rand
          4-neighbours (after step 2; a border to missing depth is not a jump) are lost with
          probability ``edge_dropout``; incidence angles > ``grazing_deg`` are lost; any pixel is lost
          with probability ``random_dropout``; measurements outside [min_range, max_range] are lost.
+    Sensor-profile effects (off by default), in the order applied:
+      a. ``shadow``: pixels the projector (stereo: the second camera) ``baseline`` to the right cannot see
+         are lost (:func:`shadow_mask`, on the clean depth);
+      b. ``multipath`` (ToF): concave regions read long (:func:`_multipath`), before step 2;
+      c. ``edge_fatten_px`` (stereo): the nearer side of a discontinuity spreads over the farther one;
+      d. ``scale_sigma``, ``offset_sigma``: one systematic z (1 + s) + o per frame, before the axial noise;
+      e. ``correlated_sigma``: a spatially correlated axial error (:func:`correlated_field`, std
+         ``correlated_sigma`` z^2) added with the white axial noise;
+      f. ``flying``: a kept pixel at a discontinuity takes, with that probability, a depth drawn uniformly
+         between the nearest and farthest depth of its 3 x 3 neighbourhood (mixed pixels);
+      g. ``dark_dropout``, ``textureless_dropout``: holes on black surfaces and on flat 7 x 7 patches (rgb).
     """
     depth = np.asarray(depth)
     _check_inputs(depth, K)
@@ -276,12 +379,23 @@ def apply_noise(depth: np.ndarray, K: np.ndarray, cfg: NoiseConfig, rng: np.rand
     if cfg.angle_term or use_grazing:
         theta = _incidence_from_depth(z, K)
 
+    shadow = shadow_mask(z, K, cfg.baseline) if cfg.shadow else None
+    if cfg.multipath > 0:
+        z = _multipath(z, cfg.multipath, cfg.multipath_px)
+    if cfg.edge_fatten_px > 0:
+        z = _fatten(z, _discontinuities(z, cfg.edge_threshold), int(cfg.edge_fatten_px))
+
     if cfg.lateral_px > 0:
         pad, idx = _lateral_index(h, w, cfg.lateral_px, rng)
         z = _resample(z, pad, idx)
         if theta is not None:
             theta = _resample(theta, pad, idx)
+        if shadow is not None:
+            shadow = _resample(shadow, pad, idx)
     valid = z > 0
+    if cfg.scale_sigma > 0 or cfg.offset_sigma > 0:
+        s_, o_ = rng.normal(0.0, [max(cfg.scale_sigma, 1e-12), max(cfg.offset_sigma, 1e-12)])
+        z = np.where(valid, z * f32(1.0 + s_) + f32(o_), f32(0.0)).astype(np.float32)
 
     fb = f32(float(K[0][0]) * cfg.baseline)  # pixels * metres
     step = f32(cfg.disparity_step_px)
@@ -290,6 +404,14 @@ def apply_noise(depth: np.ndarray, K: np.ndarray, cfg: NoiseConfig, rng: np.rand
         q = z * z * (step / fb)  # metres between neighbouring disparity levels at depth z
         sigma = np.sqrt(np.maximum(sigma * sigma - q * q / f32(12.0), f32(0.0)))
     noisy = z + rng.standard_normal((h, w), dtype=np.float32) * sigma
+    if cfg.correlated_sigma > 0:
+        noisy = noisy + correlated_field(h, w, cfg.correlated_px, rng) * (f32(cfg.correlated_sigma) * z * z)
+    if cfg.flying > 0:
+        edge = _discontinuities(z, cfg.edge_threshold)
+        lo, hi = _minmax3(z)
+        mixed = edge & (rng.random((h, w), dtype=np.float32) < f32(cfg.flying))
+        a = rng.random((h, w), dtype=np.float32)
+        noisy = np.where(mixed, lo + a * (hi - lo) + (noisy - z), noisy)
 
     with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
         if step > 0:
@@ -299,6 +421,18 @@ def apply_noise(depth: np.ndarray, K: np.ndarray, cfg: NoiseConfig, rng: np.rand
     lost = ~valid | ~np.isfinite(noisy) | (noisy <= 0) | (noisy < cfg.min_range) | (noisy > cfg.max_range)
     if use_grazing:
         lost |= theta > f32(np.deg2rad(cfg.grazing_deg))
+    if shadow is not None:
+        lost |= shadow
+    if rgb is not None and (cfg.dark_dropout > 0 or cfg.textureless_dropout > 0):
+        lum = _luminance(rgb)
+        p = np.zeros((h, w), np.float32)
+        if cfg.dark_dropout > 0 and cfg.dark_level > 0:
+            p = np.maximum(p, f32(cfg.dark_dropout) * np.clip(1 - lum / f32(cfg.dark_level), 0, 1))
+        if cfg.textureless_dropout > 0:
+            m = cv2.blur(lum, (7, 7))
+            sd = np.sqrt(np.maximum(cv2.blur(lum * lum, (7, 7)) - m * m, 0))
+            p = np.maximum(p, np.where(sd < f32(cfg.textureless_level), f32(cfg.textureless_dropout), f32(0)))
+        lost |= rng.random((h, w), dtype=np.float32) < p
     p_rand, p_edge = cfg.random_dropout, cfg.edge_dropout
     if p_rand > 0 or p_edge > 0:
         # One uniform draw covers both independent dropouts: u < p_rand loses any pixel, and an edge

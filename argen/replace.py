@@ -233,7 +233,7 @@ def replace_frame(renderer, scene: bop.BopScene, im_id: int, target: int, objs: 
         rgb_k, depth_k, seg, front = composite(rgb0, depth0, ob, INSERT_MARGIN)
         changed = front | info["removed"]
         if noise is not None and noise.enabled:
-            depth_k = np.where(changed, apply_noise(depth_k, K, noise, rng), depth_k).astype(np.float32)
+            depth_k = np.where(changed, apply_noise(depth_k, K, noise, rng, rgb=rgb_k), depth_k).astype(np.float32)
         masks, gt_out, outside = [], [], {}
         for i, g in enumerate(gts):
             if i == target:

@@ -50,3 +50,23 @@ def test_override_and_round_trip():
     assert from_dict(TemplateConfig, to_dict(cfg2)) == cfg2
     with pytest.raises(ArgenError, match="unknown option 'camera.nope'"):
         override(cfg, {"camera.nope": 1})
+
+
+def test_sensor_profiles_set_intrinsics_and_noise_and_the_template_or_set_wins():
+    from argen.config import available_sensors, load_sensor, load_template, override
+
+    assert {"kinect_v1", "kinect_v2", "realsense_d435"} <= set(available_sensors())
+    lm = load_template("linemod")
+    assert lm.sensor == "kinect_v1" and (lm.camera.width, lm.camera.fx) == (640, 572.4114)
+    assert lm.noise.shadow and lm.noise.correlated_sigma > 0 and lm.noise.model == "structured_light"
+    d435 = load_template("linemod", sensor="realsense_d435")
+    assert (d435.camera.width, d435.camera.height, d435.noise.model) == (848, 480, "stereo")
+    assert d435.camera.distance == lm.camera.distance  # the template's own keys stay
+    v2 = load_template("lchf", sensor="kinect_v2")
+    assert v2.noise.model == "tof" and v2.noise.disparity_step_px == 0 and v2.noise.multipath > 0
+    assert override(v2, {"noise.multipath": 0.0}).noise.multipath == 0.0
+    for name in available_sensors():
+        prof = load_sensor(name)
+        assert prof["sources"] and prof["description"]  # every profile says where its numbers come from
+    with pytest.raises(ArgenError, match="unknown sensor"):
+        load_template("linemod", sensor="sonar")

@@ -39,6 +39,8 @@ def test_training_crop_targets_are_the_instance_and_its_model_coordinates(labels
         for g in range(len(f.instances)):
             m = tab.index(int(f.instances.obj_id[g]))
             dia = float(tab.diameters[m])
+            if f.instances.num_points[g] < cfg.min_object_points:  # CropDataset leaves these out too
+                continue
             c = training_crop(f, g, dia, tab.sym_transforms[m], cfg, np.random.default_rng(0), NORMALISATION)
             if c is None:
                 continue

@@ -241,3 +241,107 @@ def test_sphere_normals_and_fast_incidence_path_agree():
     assert np.degrees(np.arccos(np.clip(cos, -1, 1))).max() < 2.0
     theta = incidence_angle(depth, K, normals)
     assert np.abs(_incidence_from_depth(depth, K) - theta).max() < 1e-3
+
+
+# ------------------------------------------------------------------------- sensor-profile effects
+
+OFF = dict(lateral_px=0.0, axial_a=0.0, axial_b=0.0, angle_term=False, disparity_step_px=0.0, edge_dropout=0.0,
+           random_dropout=0.0, grazing_deg=90.0)
+
+
+def _step_scene(h=120, w=200, z_fg=0.6, z_bg=1.0, c0=80, c1=120):
+    """Background plane at z_bg with a fronto-parallel foreground patch (columns c0..c1) at z_fg."""
+    d = np.full((h, w), z_bg, np.float32)
+    d[30:90, c0:c1] = z_fg
+    return d
+
+
+def test_shadow_lies_on_the_far_side_of_the_projector_and_has_the_disparity_width():
+    from argen.noise import shadow_mask
+
+    Kc = small_K(120, 200)
+    d = _step_scene()
+    sh = shadow_mask(d, Kc, 0.075)
+    width = Kc[0, 0] * 0.075 * (1 / 0.6 - 1 / 1.0)  # 28.6 px: the fg's disparity minus the bg's
+    rows = sh[40:80]
+    assert not sh[:, 120:].any() and not sh[30:90, 80:120].any()  # nothing right of it or on it
+    cols = np.nonzero(rows.any(axis=0))[0]
+    assert cols.max() == 79 and abs((cols.max() - cols.min() + 1) - width) <= 1.5
+    assert not sh[:25].any()  # rows without the foreground cast no shadow
+    out = apply_noise(d, Kc, NoiseConfig(**OFF, shadow=True), np.random.default_rng(0))
+    assert np.all(out[sh] == 0) and np.all(out[~sh] > 0)
+
+
+def test_correlated_field_has_unit_std_and_is_correlated_over_its_window():
+    from argen.noise import correlated_field
+
+    f = correlated_field(300, 400, 4.0, np.random.default_rng(1))
+    assert f.std() == pytest.approx(1.0, rel=0.05) and abs(f.mean()) < 0.05
+    lag = lambda k: np.corrcoef(f[:, :-k].ravel(), f[:, k:].ravel())[0, 1]  # noqa: E731
+    assert lag(1) > 0.8 and lag(4) > 0.4 and abs(lag(20)) < 0.05
+    # in the model: std correlated_sigma z^2, the same sign over neighbouring pixels
+    d = np.full((200, 200), 0.9, np.float32)
+    err = apply_noise(d, small_K(200, 200), NoiseConfig(**OFF, correlated_sigma=0.003), np.random.default_rng(2)) - d
+    assert err.std() == pytest.approx(0.003 * 0.81, rel=0.15)
+    assert np.corrcoef(err[:, :-1].ravel(), err[:, 1:].ravel())[0, 1] > 0.8
+
+
+def test_per_frame_scale_and_offset_move_the_whole_frame_together():
+    d = plane_depth(tilted_normal(20), (0, 0, 1.0), 100, 100, small_K(100, 100))
+    cfg = NoiseConfig(**OFF, scale_sigma=0.002, offset_sigma=0.003)
+    shifts = []
+    for seed in range(40):
+        out = apply_noise(d, small_K(100, 100), cfg, np.random.default_rng(seed))
+        s, o = np.polyfit(d.ravel(), out.ravel(), 1)  # out = s d + o exactly
+        assert np.abs(out - (s * d + o)).max() < 2e-6
+        shifts.append((s - 1, o))
+    s, o = np.array(shifts).T
+    assert 0.001 < s.std() < 0.003 and 0.0018 < o.std() < 0.0045
+
+
+def test_flying_pixels_take_depths_between_the_two_sides():
+    d = _step_scene()
+    out = apply_noise(d, small_K(120, 200), NoiseConfig(**OFF, flying=1.0), np.random.default_rng(3))
+    moved = np.abs(out - d) > 1e-6
+    assert moved.any()
+    edge = np.zeros_like(moved)
+    edge[29:91, 79:81] = edge[29:91, 119:121] = edge[29:31, 80:120] = edge[89:91, 80:120] = True
+    assert not (moved & ~edge).any()  # only next to the discontinuity
+    assert np.all((out[moved] > 0.6 - 1e-6) & (out[moved] < 1.0 + 1e-6))
+    assert np.ptp(out[moved]) > 0.2  # spread between the sides
+
+
+def test_stereo_edge_fattening_spreads_the_nearer_side():
+    d = _step_scene()
+    out = apply_noise(d, small_K(120, 200), NoiseConfig(**OFF, edge_fatten_px=2), np.random.default_rng(4))
+    near = np.isclose(out, 0.6)
+    assert near[31:89, 78:122].all() and not near[50, 77] and not near[50, 122]  # 2 px wider each side
+    assert np.isclose(out[50, 40], 1.0)
+
+
+def test_multipath_lengthens_concave_corners_only():
+    Kc = small_K(120, 160)
+    r = rays(120, 160, Kc)
+    # a V-shaped valley (concave towards the camera): two planes meeting at the middle column, the corner far
+    x = r[..., 0] / r[..., 2]
+    d = (0.8 / (1 + 0.5 * np.abs(x))).astype(np.float32)  # nearer at the sides, farthest at the corner
+    out = apply_noise(d, Kc, NoiseConfig(**OFF, multipath=0.5), np.random.default_rng(5))
+    bias = out - d
+    assert bias[:, 78:82].mean() > 5 * max(bias[:, :20].mean(), 1e-5) and bias.min() >= -1e-7
+    flat = np.full((120, 160), 0.8, np.float32)
+    assert np.abs(apply_noise(flat, Kc, NoiseConfig(**OFF, multipath=0.5), np.random.default_rng(5)) - flat).max() < 1e-6
+
+
+def test_dark_and_textureless_dropout_need_colour():
+    d = np.full((100, 200), 0.9, np.float32)
+    rgb = np.full((100, 200, 3), 200, np.uint8)
+    rgb[:, :100] = 0  # black left half
+    cfg = NoiseConfig(**OFF, dark_dropout=0.6)
+    out = apply_noise(d, small_K(100, 200), cfg, np.random.default_rng(6), rgb=rgb)
+    assert (out[:, :100] == 0).mean() == pytest.approx(0.6, abs=0.03) and (out[:, 100:] > 0).all()
+    assert (apply_noise(d, small_K(100, 200), cfg, np.random.default_rng(6)) > 0).all()  # no colour: no effect
+    tex = np.random.default_rng(0).integers(0, 255, (100, 200, 3)).astype(np.uint8)
+    tex[:, 100:] = 128  # flat right half
+    cfg = NoiseConfig(**OFF, textureless_dropout=0.5)
+    out = apply_noise(d, small_K(100, 200), cfg, np.random.default_rng(7), rgb=tex)
+    assert (out[:, 110:] == 0).mean() == pytest.approx(0.5, abs=0.04) and (out[:, :90] > 0).all()
