@@ -470,11 +470,6 @@ def load_scene(root: str | os.PathLike, split: str, scene_id: int) -> BopScene:
     return BopScene(Path(root), split, scene_id, cameras, gts, infos)
 
 
-def scene_camera_json(cameras: dict[int, dict]) -> dict:
-    """Sorted, string-keyed dict for writing."""
-    return {str(k): cameras[k] for k in sorted(cameras)}
-
-
 # ---------------------------------------------------------------------------------------- test targets
 
 #: The BOP19 test-target list at a dataset's root: the images and objects the BOP toolkit evaluates.

@@ -116,7 +116,7 @@ class FrameMaker:
         t2 = time.perf_counter()
         est = estimate_board_pose(bg.rgb, self.board, K, cfg.ar)
         timing["ar"] = time.perf_counter() - t2
-        log = {"index": index, "view": view, "markers": est.n_markers, "reproj_px": _f(est.reproj_px),
+        log = {"index": index, "view": view, "markers": est.n_markers, "reproj_px": finite_or_none(est.reproj_px),
                "placed": scene.info["placed"], "unplaced": scene.info["unplaced"]}
         if est.T_cam_board is not None:
             rot, trans = pose_error(est.T_cam_board, T_true)
@@ -162,8 +162,6 @@ class FrameMaker:
 
     def make(self, index: int) -> FrameRecord:
         """Simulate frame ``index`` and write its image files; the JSON entries are returned."""
-        cfg = self.cfg
-        scene_id, im_id = divmod(index, cfg.output.frames_per_scene)
         arrays, meta = self.simulate(index)
         return self.write(index, arrays, meta)
 
@@ -214,7 +212,8 @@ def composite(rgb: np.ndarray, depth: np.ndarray, ob, margin: float = 0.0):
     return rgb, depth, seg, front
 
 
-def _f(v):
+def finite_or_none(v):
+    """``v`` as a float for JSON, or None when it is missing or not finite."""
     return None if v is None or not np.isfinite(v) else float(v)
 
 

@@ -22,7 +22,8 @@ from pathlib import Path
 import numpy as np
 
 from argen.ar import estimate_board_pose
-from argen.capture import CaptureRequest, CaptureSummary, FrameMaker, _f, accept, frame_rngs, run_capture
+from argen.capture import (CaptureRequest, CaptureSummary, FrameMaker, accept, finite_or_none, frame_rngs,
+                           run_capture)
 from argen.config import TemplateConfig, override
 from argen.errors import ArgenError
 from argen.objects import ObjectModel
@@ -64,7 +65,7 @@ class RealFrameMaker(FrameMaker):
         t1 = time.perf_counter()
         est = estimate_board_pose(rgb, self.board, self.K, cfg.ar)
         timing["scene"], timing["ar"] = t1 - t0, time.perf_counter() - t1
-        log = {"index": index, "source": rec.names[index], "markers": est.n_markers, "reproj_px": _f(est.reproj_px),
+        log = {"index": index, "source": rec.names[index], "markers": est.n_markers, "reproj_px": finite_or_none(est.reproj_px),
                "placed": scene.info["placed"], "unplaced": scene.info["unplaced"]}
         if rec.timestamps is not None:
             log["timestamp"] = float(rec.timestamps[index])

@@ -7,7 +7,6 @@ in by :func:`register_commands` below.
 from __future__ import annotations
 
 import functools
-import importlib.util
 import shutil
 from pathlib import Path
 from typing import Optional
@@ -182,11 +181,10 @@ def _train_two_stage(train_file: Path, out: Path, config: Optional[Path], sets: 
 
 
 def register_commands() -> None:
-    """Add the ``eval`` and ``predict`` commands of ``detector.cli_eval`` (when that module is installed)."""
-    if importlib.util.find_spec("detector.cli_eval") is not None:
-        from detector.cli_eval import register
+    """Add the ``eval`` and ``predict`` commands of ``detector.cli_eval``."""
+    from detector.cli_eval import register
 
-        register(app)
+    register(app)
 
 
 register_commands()

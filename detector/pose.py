@@ -104,14 +104,6 @@ class Detection:
         return T
 
 
-def predicted_control_points(xyz: np.ndarray, offsets: np.ndarray) -> np.ndarray:
-    """Control points predicted by each point: its position plus its offsets.
-
-    xyz: (K,3) metres; offsets: (K,9,3) metres. Returns (K,9,3) metres.
-    """
-    return np.asarray(xyz)[:, None, :] + np.asarray(offsets)
-
-
 def keep_mask(obj_ids: np.ndarray, confidence: np.ndarray, tau: float) -> np.ndarray:
     """Points that are foreground and at least ``tau`` confident. obj_ids: (K,) int, 0 = background; confidence: (K,)."""
     return (np.asarray(obj_ids) > 0) & (np.asarray(confidence) >= tau)
