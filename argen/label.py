@@ -405,23 +405,28 @@ def load_label_objects(models_dir: Path, ids: list[int]) -> dict[int, ObjectMode
     return {o.obj_id: o for o in load_models(models_dir, [str(i) for i in ids])}
 
 
+def _argen_config(root: Path) -> dict:
+    """The capture config an argen dataset's argen.json records ({} for other BOP datasets)."""
+    try:
+        cfg = read_json(root / "argen.json", "argen.json")["config"]
+    except (ArgenError, KeyError, TypeError):
+        return {}
+    return cfg if isinstance(cfg, dict) else {}
+
+
 def dataset_pixel_centres(root: Path) -> str:
     """The pixel-centre convention of a dataset's K: its argen.json's ``output.pixel_centres``, else "integer"
     (BOP datasets of real sensors, and argen datasets made before the option existed)."""
-    try:
-        value = read_json(root / "argen.json", "argen.json")["config"]["output"].get("pixel_centres", "integer")
-    except (ArgenError, KeyError, TypeError, AttributeError):
-        return "integer"
-    return value if value in PIXEL_CENTRES else "integer"
+    out = _argen_config(root).get("output")
+    value = out.get("pixel_centres", "integer") if isinstance(out, dict) else "integer"
+    return value if isinstance(value, str) and value in PIXEL_CENTRES else "integer"
 
 
 def default_max_depth(root: Path) -> float:
     """Working volume for a dataset: beyond the template's farthest camera distance + 0.6 m, else 2 m."""
-    p = root / "argen.json"
     try:
-        dist = read_json(p, "argen.json")["config"]["camera"]["distance"]
-        return float(max(dist)) + 0.6
-    except (ArgenError, KeyError, TypeError, ValueError):
+        return float(max(_argen_config(root)["camera"]["distance"])) + 0.6
+    except (KeyError, TypeError, ValueError):
         return 2.0
 
 

@@ -25,7 +25,7 @@ import trimesh
 from argen import bop
 from argen.errors import ArgenError
 from argen.fileio import read_json
-from argen.objects import (NAMES_FILE, ObjectModel, info_from_mesh, load_models, load_objects, select_ids,
+from argen.objects import (ObjectModel, info_from_mesh, load_models, load_objects, read_names, select_ids,
                            write_models, write_models_eval)
 from argen.symmetry import DEFAULT_TOL, Symmetries, find_symmetries
 
@@ -261,17 +261,19 @@ def repair(mesh: trimesh.Trimesh, path: Path) -> tuple[trimesh.Trimesh, list[str
     ext = mesh.extents
     if ext.min() <= 1e-6 * ext.max():
         raise ArgenError(f"{path}: zero extent along {'xyz'[int(np.argmin(ext))]}: a flat mesh, not a solid object")
-    if np.any(edge_counts(mesh) == 1):
+    counts = edge_counts(mesh)
+    if np.any(counts == 1):
         trimesh.repair.fill_holes(mesh)
         if np.any(edge_counts(mesh) == 1):
             mesh, n = _close_holes(mesh)
             if n:
                 mesh.merge_vertices()
-        if np.any(edge_counts(mesh) == 1):
+        counts = edge_counts(mesh)
+        if np.any(counts == 1):
             raise ArgenError(f"{path}: open mesh that argen cannot close (its boundary is not a set of simple "
                              "loops); close it in a mesh editor")
         notes.append("closed holes in the surface")
-    if np.any(edge_counts(mesh) > 2):
+    if np.any(counts > 2):
         notes.append("kept edges shared by more than two faces (parts that touch)")
     if mesh.is_watertight:  # one 2-manifold surface: winding and orientation can be fixed
         if not mesh.is_winding_consistent:
@@ -363,14 +365,11 @@ def import_meshes(paths: list[Path], opts: ImportOptions | None = None,
 
 
 def _known_names(out: Path) -> dict[str, int]:
-    p = out / NAMES_FILE
-    if not p.is_file():
-        return {}
-    raw = read_json(p, NAMES_FILE)
+    raw = read_names(out) or {}
     try:
         return {str(v): int(k) for k, v in raw.items()}
-    except (AttributeError, ValueError):
-        raise ArgenError(f"{p} is not an {{id: name}} map") from None
+    except ValueError:
+        raise ArgenError(f"the names file in {out} is not an {{id: name}} map") from None
 
 
 def import_to_folder(paths: list[Path], out: Path, opts: ImportOptions | None = None) -> list[ImportedObject]:

@@ -406,8 +406,9 @@ def apply_noise(depth: np.ndarray, K: np.ndarray, cfg: NoiseConfig, rng: np.rand
     noisy = z + rng.standard_normal((h, w), dtype=np.float32) * sigma
     if cfg.correlated_sigma > 0:
         noisy = noisy + correlated_field(h, w, cfg.correlated_px, rng) * (f32(cfg.correlated_sigma) * z * z)
+    # the discontinuities after the lateral jitter: where flying pixels and edge dropout happen
+    edge = _discontinuities(z, cfg.edge_threshold) if cfg.flying > 0 or cfg.edge_dropout > 0 else None
     if cfg.flying > 0:
-        edge = _discontinuities(z, cfg.edge_threshold)
         lo, hi = _minmax3(z)
         mixed = edge & (rng.random((h, w), dtype=np.float32) < f32(cfg.flying))
         a = rng.random((h, w), dtype=np.float32)
@@ -441,6 +442,6 @@ def apply_noise(depth: np.ndarray, K: np.ndarray, cfg: NoiseConfig, rng: np.rand
         u = rng.random((h, w), dtype=np.float32)
         lost |= u < f32(p_rand)
         if p_edge > 0:
-            lost |= _discontinuities(z, cfg.edge_threshold) & (u < f32(p_rand + (1.0 - p_rand) * p_edge))
+            lost |= edge & (u < f32(p_rand + (1.0 - p_rand) * p_edge))
     noisy[lost] = 0.0
     return noisy.astype(np.float32, copy=False)

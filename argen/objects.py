@@ -107,14 +107,35 @@ def info_from_mesh(mesh: trimesh.Trimesh, symmetries_discrete=(), symmetries_con
 # ------------------------------------------------------------------------------- BOP models dir
 
 
-def _names_for(models_dir: Path, ids: list[int]) -> dict[int, str]:
-    names_p = models_dir / NAMES_FILE
-    if not names_p.is_file():
-        names_p = models_dir / LEGACY_NAMES_FILE
-    if names_p.is_file():
-        from argen.fileio import read_json
+def read_names(models_dir: Path) -> dict[str, str] | None:
+    """The ``{"obj_id": name}`` map of a models folder (names.json, else the legacy argen_names.json), or None."""
+    from argen.fileio import read_json
 
-        raw = read_json(names_p, names_p.name)
+    for name in (NAMES_FILE, LEGACY_NAMES_FILE):
+        p = Path(models_dir) / name
+        if p.is_file():
+            raw = read_json(p, name)
+            if not isinstance(raw, dict):
+                raise ArgenError(f"{p} is not an {{id: name}} map")
+            return raw
+    return None
+
+
+def surface_scene(mesh: trimesh.Trimesh):
+    """An open3d RaycastingScene of the mesh's triangles, for exact point-to-surface distances and closest
+    points (same units as the mesh). open3d is imported here, not at the top: every argen command imports this
+    module, and open3d takes about a second to load."""
+    import open3d as o3d
+
+    scene = o3d.t.geometry.RaycastingScene()
+    scene.add_triangles(o3d.core.Tensor(np.asarray(mesh.vertices, np.float32)),
+                        o3d.core.Tensor(np.asarray(mesh.faces, np.uint32)))
+    return scene
+
+
+def _names_for(models_dir: Path, ids: list[int]) -> dict[int, str]:
+    raw = read_names(models_dir)
+    if raw is not None:
         return {i: str(raw.get(str(i), f"obj_{i:06d}")) for i in ids}
     linemod = models_dir.resolve().parent.name.lower() in ("lm", "lmo", "linemod", "lm_full")
     return {i: (LINEMOD_NAMES.get(i, f"obj_{i:06d}") if linemod else f"obj_{i:06d}") for i in ids}

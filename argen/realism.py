@@ -15,7 +15,8 @@ import numpy as np
 import open3d as o3d
 
 from argen import bop
-from argen.objects import ObjectModel
+from argen.label import backproject
+from argen.objects import ObjectModel, surface_scene
 
 #: Distance bins of the benchmark, metres (the camera-to-point depth z).
 DISTANCE_BINS = ((0.6, 0.8), (0.8, 0.95), (0.95, 1.1))
@@ -50,11 +51,7 @@ class _Surfaces:
 
     def scene(self, obj_id: int) -> o3d.t.geometry.RaycastingScene:
         if obj_id not in self._scenes:
-            m = self.models[obj_id].mesh
-            sc = o3d.t.geometry.RaycastingScene()
-            sc.add_triangles(o3d.core.Tensor(np.asarray(m.vertices, np.float32)),
-                             o3d.core.Tensor(np.asarray(m.faces, np.uint32)))
-            self._scenes[obj_id] = sc
+            self._scenes[obj_id] = surface_scene(self.models[obj_id].mesh)
         return self._scenes[obj_id]
 
 
@@ -76,7 +73,7 @@ def frame_errors(scene: bop.BopScene, im_id: int, surfaces: _Surfaces, min_visib
         if len(rows) == 0:
             continue
         z = depth[rows, cols].astype(np.float64)
-        p = np.stack([(cols - K[0, 2]) * z / K[0, 0], (rows - K[1, 2]) * z / K[1, 1], z], axis=1)
+        p = backproject(rows, cols, z, K)
         q = (p - g.t) @ g.R  # model frame: R^T (p - t)
         ans = surfaces.scene(g.obj_id).compute_closest_points(o3d.core.Tensor(q.astype(np.float32)))
         closest = ans["points"].numpy().astype(np.float64)

@@ -593,10 +593,7 @@ class Renderer:
         """
         self._set_camera(K, T_cam_world, znear, zfar)
         nodes = self._place(items)
-        by_id: dict[int, list[int]] = {}
-        for i, it in enumerate(items):
-            if int(it.seg_id) > 0:
-                by_id.setdefault(int(it.seg_id), []).append(i)
+        by_id = _items_by_seg_id(items)
         boxes = {sid: self._pixel_box(items, idx, K, T_cam_world, znear) for sid, idx in by_id.items()}
         groups: list[list[int]] = []
         for sid in sorted(by_id):
@@ -628,12 +625,8 @@ class Renderer:
         """
         W, H = self.width, self.height
         K = np.asarray(K, dtype=np.float64)
-        by_id: dict[int, list[int]] = {}
-        for i, it in enumerate(items):
-            if int(it.seg_id) > 0:
-                by_id.setdefault(int(it.seg_id), []).append(i)
         out = {}
-        for sid, idx in sorted(by_id.items()):
+        for sid, idx in sorted(_items_by_seg_id(items).items()):
             box = self._pixel_box(items, idx, K, T_cam_world, znear)
             if box[0] >= 0 and box[1] >= 0 and box[2] <= W - 1 and box[3] <= H - 1:
                 continue
@@ -705,6 +698,15 @@ def _close_all() -> None:
                 r.close()
             except Exception:  # shutting down: nothing useful to report
                 pass
+
+
+def _items_by_seg_id(items: Sequence[RenderItem]) -> dict[int, list[int]]:
+    """{seg_id: indices into ``items``} of the items with seg_id > 0 (an instance may be several items)."""
+    by_id: dict[int, list[int]] = {}
+    for i, it in enumerate(items):
+        if int(it.seg_id) > 0:
+            by_id.setdefault(int(it.seg_id), []).append(i)
+    return by_id
 
 
 def get_renderer(width: int, height: int, max_faces: int | None = None) -> Renderer:

@@ -31,6 +31,8 @@ import numpy as np
 import open3d as o3d
 import trimesh
 
+from argen.objects import surface_scene
+
 #: Default tolerance: fraction of the diameter a symmetry may move the surface by.
 DEFAULT_TOL = 0.05
 #: Share of the surface that must move by less than the tolerance (1.0: every point, BOP's strict rule).
@@ -121,9 +123,7 @@ class _Checker:
     """Largest surface move of a transform, as a fraction of the diameter, with an early exit."""
 
     def __init__(self, mesh: trimesh.Trimesh, diameter: float, n_points: int, seed: int, quantile: float):
-        self.scene = o3d.t.geometry.RaycastingScene()
-        self.scene.add_triangles(o3d.core.Tensor(np.asarray(mesh.vertices, np.float32)),
-                                 o3d.core.Tensor(np.asarray(mesh.faces, np.uint32)))
+        self.scene = surface_scene(mesh)
         pts, _ = trimesh.sample.sample_surface(mesh, n_points, seed=seed)
         self.points = np.asarray(pts, float)
         self.coarse = self.points[:: max(1, n_points // 300)]

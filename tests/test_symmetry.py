@@ -7,7 +7,7 @@ import open3d as o3d
 import pytest
 import trimesh
 
-from argen.objects import builtin_objects, info_from_mesh, load_models
+from argen.objects import builtin_objects, info_from_mesh, load_models, surface_scene
 from argen.symmetry import find_symmetries, rotation_angle_axis, surface_moments
 
 C = trimesh.creation
@@ -19,9 +19,7 @@ def _sym(mesh, **kw):
 
 def _maps_onto_itself(mesh, T, tol):
     """Every vertex of T(mesh) lies within tol (metres) of the mesh's surface."""
-    scene = o3d.t.geometry.RaycastingScene()
-    scene.add_triangles(o3d.core.Tensor(np.asarray(mesh.vertices, np.float32)),
-                        o3d.core.Tensor(np.asarray(mesh.faces, np.uint32)))
+    scene = surface_scene(mesh)
     q = trimesh.transform_points(np.asarray(mesh.vertices), T)
     d = scene.compute_distance(o3d.core.Tensor(q.astype(np.float32))).numpy()
     return d.max() < tol
