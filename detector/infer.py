@@ -72,8 +72,9 @@ def pose_from_crop(xyz: np.ndarray, prob: np.ndarray, model_xyz: np.ndarray, dia
     """A pose from one crop's predictions: xyz (n,3) camera metres, prob (n,), model_xyz (n,3) model metres.
 
     surface: (cKDTree of model points, normals) for ``cfg.verify`` > 1 (:meth:`detector.pose.ObjectInfo.surface`).
-    Returns R (3,3), t (3,) and the foreground (probability >= ``cfg.fg_threshold``) indices of the crop, or None
-    with fewer than ``cfg.min_fg`` foreground points.
+    Returns R (3,3), t (3,), the foreground (probability >= ``cfg.fg_threshold``) indices of the crop and the other
+    verified hypotheses [(R, t), ...] from the best fit to the worst (empty without verification), or None with
+    fewer than ``cfg.min_fg`` foreground points.
     """
     fg = np.flatnonzero(prob >= cfg.fg_threshold)
     if len(fg) < max(cfg.min_fg, 3):
@@ -84,10 +85,13 @@ def pose_from_crop(xyz: np.ndarray, prob: np.ndarray, model_xyz: np.ndarray, dia
         tree, normals = surface
         fits = [fit_rms(fit_residuals(xyz[fg], tree, normals, R, t, 0.05 * diameter), cfg.verify_trim)
                 for R, t, _ in cands]
-        R, t, _ = cands[int(np.argmin(fits))]
+        order = np.argsort(fits, kind="stable")
+        R, t, _ = cands[int(order[0])]
+        others = [(cands[j][0], cands[j][1]) for j in order[1:]]
     else:
         R, t, _ = cands
-    return R, t, fg
+        others = []
+    return R, t, fg, others
 
 
 class CropPoser:
@@ -96,8 +100,8 @@ class CropPoser:
     net: a CropNet (eval mode); class_ids: its object ids (class c is ``class_ids[c]``); objects: the pose
     stage's :class:`detector.pose.ObjectInfo`; crop_cfg / cfg: crop and pose options; normalisation: colour
     normalisation of the network input. Calling it with (detections, features (N,9), timings) returns the
-    detections with stage-2 poses, scores and ``points`` = the crop's foreground rows of ``features`` (ICP uses
-    them). A detection whose crop yields no pose is dropped. Adds "stage2" seconds. The score is the share of the
+    detections with stage-2 poses, scores, ``points`` = the crop's foreground rows of ``features`` (ICP uses
+    them) and ``alternatives`` = the crop's other verified hypotheses, best fit first (ICP may start from them). A detection whose crop yields no pose is dropped. Adds "stage2" seconds. The score is the share of the
     foreground points that the model surface under the pose explains to within ``support_distance`` of the
     diameter (:func:`detector.pose.surface_support`): it tells wrong poses and false detections from right ones
     far better than vote or inlier shares (measured on a validation capture).
@@ -123,7 +127,7 @@ class CropPoser:
         xyz = np.asarray(features[:, :3], np.float64)
         rng = np.random.default_rng(self.seed)
         centres = [d.control_points[8] for d in dets]
-        results: list = [None] * len(dets)  # (R, t, foreground rows of features) of each detection
+        results: list = [None] * len(dets)  # (R, t, foreground rows of features, other hypotheses) of each detection
         for it in range(1 + self.cfg.recentre):
             todo = [k for k in range(len(dets)) if it == 0 or results[k] is not None]
             if not todo:
@@ -138,19 +142,20 @@ class CropPoser:
                                      self.objects.surface(oid) if self.cfg.verify > 1 else None)
                 if res is None:
                     continue
-                R, t, fg = res
-                results[k] = (R, t, np.unique(rows[fg]))
+                R, t, fg, others = res
+                results[k] = (R, t, np.unique(rows[fg]), others)
                 centres[k] = R @ self.objects.control_points[oid][8] + t
         out = []
         for d, r in zip(dets, results):
             if r is None:
                 continue
-            R, t, fg = r
+            R, t, fg, others = r
             tree, normals = self.objects.surface(d.obj_id)
             dist = self.support_distance * self.objects.diameters[d.obj_id]
             score = surface_support(xyz[fg], tree, normals, R, t, dist)
             cps = self.objects.control_points[d.obj_id] @ R.T + t
-            out.append(replace(d, R=R, t=t, score=score, control_points=cps, points=fg))
+            out.append(replace(d, R=R, t=t, score=score, control_points=cps, points=fg,
+                               alternatives=others))
         if timings is not None:
             timings["stage2"] = timings.get("stage2", 0.0) + time.perf_counter() - t0
         return out

@@ -38,7 +38,9 @@ class PoseConfig:
     icp_iterations: ICP iteration limit; icp_min_points: fewest scene points to run ICP;
     icp_trim: share of the scene points (the best-fitting ones) whose point-to-plane RMS decides whether
     the ICP pose is kept (see :func:`fit_rms`); icp_gate: a scene point farther than this fraction of the
-    diameter from every model point counts as an outlier at that distance;
+    diameter from every model point counts as an outlier at that distance; icp_starts: ICP runs from the
+    detection's pose and from up to ``icp_starts - 1`` of its ``alternatives`` and keeps the best-fitting result
+    (a wrong-way first pose is a local minimum that ICP alone cannot leave);
     propagate: metres, a frame point belongs to a detection when its ``owner_votes`` nearest predicted points
     within this distance are all that detection's members (ICP points);
     centre_votes: instances from the box-centre votes alone (a two-stage model's stage 1, whose corners are
@@ -62,6 +64,7 @@ class PoseConfig:
     icp_min_points: int = 30
     icp_trim: float = 0.7
     icp_gate: float = 0.05
+    icp_starts: int = 8
     support_distance: float = 0.02
     propagate: float = 0.01
     owner_votes: int = 3
@@ -81,7 +84,8 @@ class Detection:
     icp: what ICP did - "" (not run), "accepted", "rejected" (it did not improve the fit: pose unchanged),
     "skipped" (too few scene points); fit_rms: (before, after) trimmed point-to-plane RMS, metres, when run;
     points: (P,) int64 rows of the frame cloud that are this instance's (a two-stage model's crop foreground),
-    or None (ICP then carries ``members`` to the cloud).
+    or None (ICP then carries ``members`` to the cloud); alternatives: other candidate poses [(R, t), ...], best
+    first (a two-stage model's other verified RANSAC hypotheses), from which ICP also starts.
     """
 
     obj_id: int
@@ -95,6 +99,7 @@ class Detection:
     icp: str = ""
     fit_rms: tuple[float, float] | None = None
     points: np.ndarray | None = field(default=None, repr=False)
+    alternatives: list | None = field(default=None, repr=False)
 
     @property
     def pose(self) -> np.ndarray:
@@ -410,19 +415,27 @@ def owned_points(owners: np.ndarray, members: np.ndarray, num_predicted: int) ->
 
 
 def refine_pose(scene_points: np.ndarray, obj_id: int, R: np.ndarray, t: np.ndarray, objects: ObjectInfo,
-                cfg: PoseConfig) -> tuple[np.ndarray, np.ndarray, bool, tuple[float, float]]:
+                cfg: PoseConfig, alternatives: list | None = None
+                ) -> tuple[np.ndarray, np.ndarray, bool, tuple[float, float]]:
     """ICP from (R, t), kept only when it lowers the trimmed point-to-plane RMS of the same scene points.
 
-    scene_points: (S,3) camera frame, metres; R (3,3), t (3,) the initial T_cam_model. Returns R (3,3), t (3,),
-    accepted (False: the input pose, unchanged) and (RMS before, RMS after) in metres.
+    scene_points: (S,3) camera frame, metres; R (3,3), t (3,) the initial T_cam_model; alternatives: other
+    starting poses [(R, t), ...], of which the first ``cfg.icp_starts - 1`` are also refined; the ICP result
+    that fits best is the candidate. Returns R (3,3), t (3,), accepted (False: the input pose, unchanged) and
+    (RMS before, RMS after) in metres.
     """
     dia = objects.diameters[obj_id]
-    R1, t1 = icp_refine(scene_points, objects.model_points[obj_id], R, t, cfg.icp_distance * dia,
-                        cfg.icp_iterations, objects.cloud(obj_id), cfg.icp_kernel * dia if cfg.icp_kernel else None)
     tree, normals = objects.surface(obj_id)
     gate = cfg.icp_gate * dia
     before = fit_rms(fit_residuals(scene_points, tree, normals, R, t, gate), cfg.icp_trim)
-    after = fit_rms(fit_residuals(scene_points, tree, normals, R1, t1, gate), cfg.icp_trim)
+    best = None
+    for R0, t0 in [(R, t)] + list(alternatives or [])[:max(cfg.icp_starts - 1, 0)]:
+        R1, t1 = icp_refine(scene_points, objects.model_points[obj_id], R0, t0, cfg.icp_distance * dia,
+                            cfg.icp_iterations, objects.cloud(obj_id), cfg.icp_kernel * dia if cfg.icp_kernel else None)
+        after = fit_rms(fit_residuals(scene_points, tree, normals, R1, t1, gate), cfg.icp_trim)
+        if best is None or after < best[0]:
+            best = (after, R1, t1)
+    after, R1, t1 = best
     if after < before:
         return R1, t1, True, (before, after)
     return np.asarray(R, np.float64), np.asarray(t, np.float64), False, (before, after)
@@ -454,7 +467,7 @@ def refine(detections: list[Detection], xyz: np.ndarray, objects: ObjectInfo, cf
         if len(pts) < cfg.icp_min_points:
             out.append(replace(d, icp="skipped"))
             continue
-        R, t, ok, rms = refine_pose(pts, d.obj_id, d.R, d.t, objects, cfg)
+        R, t, ok, rms = refine_pose(pts, d.obj_id, d.R, d.t, objects, cfg, d.alternatives)
         score = d.score
         if d.points is not None:  # a two-stage detection: its score is the support of its points, at the new pose
             tree, normals = objects.surface(d.obj_id)

@@ -23,7 +23,7 @@ from detector.train_pose import load_pose_config, train_pose
 STAGE1_DEFAULTS = {"loss.centre_only": True, "steps": 3000, "checkpoint_every": 250, "val_every": 1000,
                    "num_workers": 1}
 #: Pose-stage settings stored in the model file (keys of detector.pose.PoseConfig).
-POSE_DEFAULTS = {"tau": 0.3, "centre_votes": True, "min_score": 0.6, "min_score_unrefined": 0.2}
+POSE_DEFAULTS = {"tau": 0.3, "centre_votes": True, "min_score": 0.55, "min_score_unrefined": 0.2}
 
 
 @dataclass

@@ -271,3 +271,25 @@ def test_surface_support_is_high_for_the_right_pose_only():
     assert surface_support(surf, tree, normals, R_off, t, d) < 0.6
     assert surface_support(table, tree, normals, R, t, d) < 0.3  # the table is not the drill
     assert surface_support(np.zeros((0, 3)), tree, normals, R, t, d) == 0.0
+
+
+def test_icp_starts_from_alternatives_and_keeps_the_best_fit():
+    """A wrong-way first pose (turned 120 degrees) is a local minimum ICP cannot leave; with a near-right
+    alternative among the starting poses, refine keeps the alternative's ICP result, since it fits better."""
+    rng = np.random.default_rng(21)
+    for name in ("drill", "duck"):
+        obj, model, R, t, surf, _ = resting_scene(name, rng)
+        objs = ObjectInfo({1: obj.control_points}, {1: obj.diameter}, {1: model})
+        noisy = surf + rng.normal(0, 0.001, surf.shape)
+        wrong = Rotation.from_rotvec(np.radians(120) * np.array([0.0, 0.6, 0.8])).as_matrix() @ R
+        near = Rotation.from_rotvec(np.radians(8) * np.array([1.0, 0.0, 0.0])).as_matrix() @ R
+        bad = Rotation.from_rotvec(np.radians(90) * np.array([1.0, 0.0, 0.0])).as_matrix() @ R
+        d = Detection(1, 1.0, wrong, t, len(surf), np.zeros((9, 3)), np.arange(len(surf)),
+                      alternatives=[(bad, t), (near, t + 0.01)])
+        (one,) = refine([d], noisy, objs, PoseConfig(icp=True, icp_starts=1))
+        (two,) = refine([d], noisy, objs, PoseConfig(icp=True, icp_starts=2))
+        (three,) = refine([d], noisy, objs, PoseConfig(icp=True, icp_starts=3))
+        assert add_error(model, R, t, one.R, one.t) > 0.1 * obj.diameter  # ICP from the wrong pose stays wrong
+        assert add_error(model, R, t, two.R, two.t) > 0.1 * obj.diameter  # the near pose is the third start
+        assert three.icp == "accepted" and three.fit_rms[1] < three.fit_rms[0]
+        assert add_error(model, R, t, three.R, three.t) < 0.003
