@@ -270,3 +270,32 @@ def test_crop_poser_with_true_crop_labels_gives_exact_poses(labels):
                 assert d.points is not None and np.all(f.instance[d.points] == g)
                 checked += 1
     assert checked >= 4
+
+
+def test_pose_from_crop_returns_the_best_fit_first_and_the_other_hypotheses_by_fit():
+    """Verification ranks the RANSAC hypotheses by how well the model surface fits the foreground points: with
+    60 % right and 40 % wrong coordinates the exact pose comes first, and the alternatives follow by fit."""
+    from argen.objects import builtin_objects
+    from detector.infer import CropPoseConfig, pose_from_crop
+    from detector.pose import ObjectInfo, fit_residuals, fit_rms
+
+    rng = np.random.default_rng(5)
+    obj = builtin_objects(["drill"])[0]
+    model = np.asarray(obj.mesh.sample(1500, seed=3))
+    objs = ObjectInfo({1: obj.control_points}, {1: obj.diameter}, {1: model})
+    R, t = Rotation.random(random_state=rng).as_matrix(), np.array([0.02, -0.01, 0.8])
+    m = model[rng.choice(len(model), 200, replace=False)]
+    xyz = m @ R.T + t
+    mxyz = m.copy()
+    wrong = rng.random(200) < 0.4
+    mxyz[wrong] = rng.normal(size=(wrong.sum(), 3)) * 0.3 * obj.diameter
+    cfg = CropPoseConfig(verify=8)
+    R1, t1, fg, others = pose_from_crop(xyz, np.ones(200), mxyz, obj.diameter, cfg, rng, objs.surface(1))
+    assert len(fg) == 200 and len(others) == 7
+    assert np.abs(R1 - R).max() < 1e-6 and np.linalg.norm(t1 - t) < 1e-6
+    tree, normals = objs.surface(1)
+    fits = [fit_rms(fit_residuals(xyz, tree, normals, Ra, ta, 0.05 * obj.diameter), cfg.verify_trim)
+            for Ra, ta in [(R1, t1)] + others]
+    assert fits == sorted(fits)
+    _, _, _, none = pose_from_crop(xyz, np.ones(200), mxyz, obj.diameter, CropPoseConfig(verify=1), rng, None)
+    assert none == []
