@@ -4,7 +4,7 @@ Everything this module returns is in metres; everything it is given is in metres
 BOP millimetres on the way out. Layout (https://github.com/thodan/bop_toolkit/blob/master/docs/bop_datasets_format.md):
 
     DATASET/models/{models_info.json, obj_OBJID.ply}
-    DATASET/camera.json
+    DATASET/camera.json    (also the intrinsics of a recording folder, argen.recording)
     DATASET/SPLIT/SCENE/{scene_camera.json, scene_gt.json, scene_gt_info.json}
     DATASET/SPLIT/SCENE/rgb/IMID.{png,jpg}  (JPEG in pbr splits, e.g. train_pbr, as BOP's toolkit expects)
     DATASET/SPLIT/SCENE/depth/IMID.png
@@ -276,6 +276,65 @@ def read_mask(path: str | os.PathLike) -> np.ndarray:
     return _read_image(Path(path), cv2.IMREAD_GRAYSCALE) > 127
 
 
+# ------------------------------------------------------------------------------------ camera.json
+
+#: The dataset-level camera file (also a recording folder's intrinsics file).
+CAMERA_FILE = "camera.json"
+
+
+@dataclass
+class CameraFile:
+    """What a ``camera.json`` says. K: (3,3) pixels; depth_scale: mm per depth-PNG unit, or None when not given;
+    width, height: pixels or None; dist: distortion coefficients as given (empty when none)."""
+
+    K: np.ndarray
+    depth_scale: float | None
+    width: int | None
+    height: int | None
+    dist: list
+
+
+def parse_intrinsics(cam: dict, where: str) -> np.ndarray:
+    """K (3,3) float64 from a JSON object with fx, fy, cx, cy, or cam_K (9 values), or K (3x3); checked."""
+    try:
+        if "K" in cam:
+            K = np.array(cam["K"], float).reshape(3, 3)
+        elif "cam_K" in cam:
+            K = np.array(cam["cam_K"], float).reshape(3, 3)
+        else:
+            K = np.array([[cam["fx"], 0, cam["cx"]], [0, cam["fy"], cam["cy"]], [0, 0, 1]], float)
+    except KeyError as exc:
+        raise ArgenError(f"{where}: no intrinsics: give fx, fy, cx, cy (or cam_K / K); missing {exc}") from None
+    except (TypeError, ValueError) as exc:
+        raise ArgenError(f"{where}: malformed intrinsics ({exc})") from None
+    if not (np.isfinite(K).all() and K[0, 0] > 0 and K[1, 1] > 0 and K[0, 1] == 0 and (K[2] == [0, 0, 1]).all()):
+        raise ArgenError(f"{where}: intrinsics must be [[fx, 0, cx], [0, fy, cy], [0, 0, 1]] with fx, fy > 0")
+    return K
+
+
+def load_camera(path: str | os.PathLike) -> CameraFile:
+    """Read a ``camera.json`` (BOP's fx, fy, cx, cy, depth_scale, width, height; cam_K or K also accepted)."""
+    path = Path(path)
+    cam = read_json(path, CAMERA_FILE)
+    if not isinstance(cam, dict):
+        raise ArgenError(f"{path} must hold an object with fx, fy, cx, cy and depth_scale")
+    K = parse_intrinsics(cam, str(path))
+    try:
+        size = [int(cam[k]) if k in cam else None for k in ("width", "height")]
+        scale = float(cam["depth_scale"]) if "depth_scale" in cam else None
+        dist = [float(v) for v in np.ravel(cam.get("dist", []))]
+    except (TypeError, ValueError) as exc:
+        raise ArgenError(f"{path}: malformed camera.json ({exc})") from None
+    return CameraFile(K, scale, size[0], size[1], dist)
+
+
+def save_camera(path: str | os.PathLike, K: np.ndarray, width: int, height: int, depth_scale: float) -> None:
+    """Write a BOP ``camera.json`` (fx, fy, cx, cy pixels, depth_scale, width, height), atomically."""
+    K = np.asarray(K, np.float64)
+    write_json(path, {"cx": float(K[0, 2]), "cy": float(K[1, 2]), "fx": float(K[0, 0]), "fy": float(K[1, 1]),
+                      "depth_scale": float(depth_scale), "width": int(width), "height": int(height)})
+
+
 # ---------------------------------------------------------------------------------- scene JSONs
 
 
@@ -468,6 +527,60 @@ def load_scene(root: str | os.PathLike, split: str, scene_id: int) -> BopScene:
         if infos and im_id in infos and len(infos[im_id]) != len(g):
             raise ArgenError(f"{info_p}: image {im_id} lists {len(infos[im_id])} instances, scene_gt.json {len(g)}")
     return BopScene(Path(root), split, scene_id, cameras, gts, infos)
+
+
+# ------------------------------------------------------------------------------- writing scene JSONs
+
+#: The per-scene JSON files, without ``.json``.
+SCENE_FILES = ("scene_camera", "scene_gt", "scene_gt_info")
+
+
+def load_scene_jsons(root: str | os.PathLike, split: str, scene_id: int) -> dict[str, dict]:
+    """The raw content of a scene's three JSON files {name: {im_id str: entry}} ({} for a missing file)."""
+    d = scene_dir(root, split, scene_id)
+    return {name: (_scene_json(d / f"{name}.json", f"{name}.json") if (d / f"{name}.json").is_file() else {})
+            for name in SCENE_FILES}
+
+
+def save_scene_jsons(root: str | os.PathLike, split: str, scene_id: int, data: dict[str, dict]) -> None:
+    """Write a scene's JSON files from {name: {im_id str: entry}} (images in id order, compact), atomically."""
+    d = scene_dir(root, split, scene_id)
+    for name, content in data.items():
+        write_json(d / f"{name}.json", {k: content[k] for k in sorted(content, key=int)}, indent=None)
+
+
+class SceneJsons:
+    """The per-scene JSON files of a split being written: kept in memory, merged with what is on disk, and flushed
+    atomically (a resumed or merged capture keeps the entries already there)."""
+
+    def __init__(self, root: str | os.PathLike, split: str):
+        self.root, self.split = Path(root), split
+        self.data: dict[int, dict[str, dict]] = {}
+        self.dirty: set[int] = set()
+
+    def scene(self, scene_id: int) -> dict[str, dict]:
+        """The scene's {name: {im_id str: entry}}, read from disk the first time; the caller may change it (then
+        :meth:`touch` it)."""
+        if scene_id not in self.data:
+            self.data[scene_id] = load_scene_jsons(self.root, self.split, scene_id)
+        return self.data[scene_id]
+
+    def touch(self, scene_id: int) -> None:
+        """Mark a scene as changed: the next :meth:`flush` writes it."""
+        self.dirty.add(scene_id)
+
+    def add(self, scene_id: int, im_id: int, camera: dict, gt: list, gt_info: list) -> None:
+        """One image's entries: ``camera_entry``, [``gt_entry``, ...] and [``gt_info_entry``, ...]."""
+        s = self.scene(scene_id)
+        key = str(im_id)
+        s["scene_camera"][key], s["scene_gt"][key], s["scene_gt_info"][key] = camera, gt, gt_info
+        self.touch(scene_id)
+
+    def flush(self) -> None:
+        """Write the changed scenes."""
+        for sid in sorted(self.dirty):
+            save_scene_jsons(self.root, self.split, sid, self.data[sid])
+        self.dirty.clear()
 
 
 # ---------------------------------------------------------------------------------------- test targets

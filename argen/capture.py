@@ -15,7 +15,6 @@ resumes with the frames not yet in it.
 
 from __future__ import annotations
 
-import dataclasses
 import json
 import re
 import multiprocessing as mp
@@ -271,9 +270,7 @@ def prepare_output(req: CaptureRequest, kind: str = "capture-sim", extra: dict |
     write_models(out / "models", req.objects)
     write_models_eval(out / "models_eval", req.objects)
     cam = req.cfg.camera
-    write_json(out / "camera.json", {"cx": cam.cx, "cy": cam.cy, "fx": cam.fx, "fy": cam.fy,
-                                     "depth_scale": req.cfg.output.depth_scale,
-                                     "width": cam.width, "height": cam.height})
+    bop.save_camera(out / bop.CAMERA_FILE, intrinsics(cam), cam.width, cam.height, req.cfg.output.depth_scale)
     log_p = out / "capture_log.json"
     if log_p.is_file():
         log = read_json(log_p, "capture_log.json")
@@ -283,45 +280,11 @@ def prepare_output(req: CaptureRequest, kind: str = "capture-sim", extra: dict |
 
 def _remove_ours(out: Path, split: str) -> None:
     """Remove what a capture wrote (never other files the user keeps there)."""
-    for name in ("argen.json", "capture_log.json", "camera.json"):
+    for name in ("argen.json", "capture_log.json", bop.CAMERA_FILE):
         (out / name).unlink(missing_ok=True)
     for name in ("models", "models_eval", split):
         if (out / name).is_dir():
             shutil.rmtree(out / name)
-
-
-class SceneJsons:
-    """The three per-scene JSON files, kept in memory and flushed atomically."""
-
-    def __init__(self, root: Path, split: str):
-        self.root, self.split = root, split
-        self.data: dict[int, dict[str, dict]] = {}
-        self.dirty: set[int] = set()
-
-    def _load(self, scene_id: int) -> dict[str, dict]:
-        if scene_id not in self.data:
-            d = bop.scene_dir(self.root, self.split, scene_id)
-            self.data[scene_id] = {
-                name: (read_json(d / f"{name}.json", f"{name}.json") if (d / f"{name}.json").is_file() else {})
-                for name in ("scene_camera", "scene_gt", "scene_gt_info")
-            }
-        return self.data[scene_id]
-
-    def add(self, rec: FrameRecord) -> None:
-        s = self._load(rec.scene_id)
-        key = str(rec.im_id)
-        s["scene_camera"][key] = rec.camera
-        s["scene_gt"][key] = rec.gt
-        s["scene_gt_info"][key] = rec.gt_info
-        self.dirty.add(rec.scene_id)
-
-    def flush(self) -> None:
-        for sid in sorted(self.dirty):
-            d = bop.scene_dir(self.root, self.split, sid)
-            for name, content in self.data[sid].items():
-                ordered = {k: content[k] for k in sorted(content, key=int)}
-                write_json(d / f"{name}.json", ordered, indent=None)
-        self.dirty.clear()
 
 
 # ------------------------------------------------------------------------------------- running
@@ -377,7 +340,7 @@ def run_capture(req: CaptureRequest, maker=None, kind: str = "capture-sim", extr
     mine = shard_indices(req.frames, req.shard)
     done = prepare_output(req, kind, extra)
     todo = [i for i in mine if i not in done]
-    jsons = SceneJsons(req.out, req.cfg.output.split)
+    jsons = bop.SceneJsons(req.out, req.cfg.output.split)
     log_entries = dict(done)
     stage = {k: 0.0 for k in STAGES}
     t_start = time.perf_counter()
@@ -400,7 +363,7 @@ def run_capture(req: CaptureRequest, maker=None, kind: str = "capture-sim", extr
                 stage[k] = stage.get(k, 0.0) + v
             unplaced += len(rec.log.get("unplaced", []))
             if rec.accepted:
-                jsons.add(rec)
+                jsons.add(rec.scene_id, rec.im_id, rec.camera, rec.gt, rec.gt_info)
                 written += 1
             else:
                 rejected += 1

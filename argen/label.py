@@ -53,13 +53,12 @@ import numpy as np
 from argen import __version__, bop
 from argen.config import PIXEL_CENTRES, simulation_K
 from argen.errors import ArgenError
+from argen.features import frame_points
 from argen.fileio import read_json, write_json
 from argen.h5 import FrameLabels, InstanceTable, LabelFile, LabelWriter, ObjectTable, point_control_points
 from argen.objects import ObjectModel, load_models
 
 CHUNK = 16  # frames per partial file
-NORMAL_STEP = 2  # pixels between a point and the neighbours its tangents use
-JUMP_REL = 0.03  # a neighbour whose depth differs by more than this fraction of the depth is across an edge
 FAR_MARGIN = 0.01  # metres beyond an object's bounding sphere where a masked pixel is taken as background
 CONTINUOUS_STEPS = 36  # discretisation of a continuous symmetry (10 degrees)
 
@@ -159,78 +158,6 @@ def object_table(objects: list[ObjectModel], n_points: int = 1000, seed: int = 0
         model_points=np.stack(pts).astype(np.float32),
         sym_transforms=[symmetry_transforms(o.info).astype(np.float32) for o in objects],
     )
-
-
-# ------------------------------------------------------------------------------- geometry
-
-
-def backproject(rows: np.ndarray, cols: np.ndarray, z: np.ndarray, K: np.ndarray) -> np.ndarray:
-    """Camera-frame points of pixels. rows, cols: (N,) int; z: (N,) metres; K: (3,3). Returns (N,3) float64."""
-    x = (cols - K[0, 2]) * z / K[0, 0]
-    y = (rows - K[1, 2]) * z / K[1, 1]
-    return np.stack([x, y, z], axis=1)
-
-
-def subsample(n: int, points: np.ndarray | None, max_points: int, voxel: float,
-              rng: np.random.Generator) -> np.ndarray:
-    """Indices (sorted) of at most ``max_points`` of ``n`` points: one per voxel (if voxel > 0), then uniform random.
-
-    points: (n,3) metres in pixel order (needed only when voxel > 0). Returns (k,) int64 into the n points.
-    """
-    keep = np.arange(n)
-    if n <= max_points:
-        return keep
-    if voxel > 0:
-        v = np.floor(points / voxel).astype(np.int64)
-        v -= v.min(axis=0)
-        dims = v.max(axis=0) + 1
-        key = (v[:, 0] * dims[1] + v[:, 1]) * dims[2] + v[:, 2]
-        _, keep = np.unique(key, return_index=True)
-        keep.sort()
-    if len(keep) > max_points:
-        keep = np.sort(keep[rng.choice(len(keep), max_points, replace=False)])
-    return keep
-
-
-def smooth_depth(depth: np.ndarray) -> np.ndarray:
-    """Edge-preserving smoothing for normals. depth: (H,W) float32 metres, 0 = missing (stays 0)."""
-    out = cv2.bilateralFilter(depth, 5, 0.01, 2.0)
-    out[depth <= 0] = 0
-    return out
-
-
-def grid_normals(depth: np.ndarray, K: np.ndarray, rows: np.ndarray, cols: np.ndarray,
-                 step: int = NORMAL_STEP, jump: float = JUMP_REL) -> np.ndarray:
-    """Unit normals at pixels from the (smoothed) depth grid, oriented toward the camera.
-
-    depth: (H,W) float32 metres, 0 = missing; K: (3,3); rows, cols: (N,) int pixels with depth > 0.
-    Returns (N,3) float32. See the module docstring for the method.
-    """
-    h, w = depth.shape
-    z = depth[rows, cols].astype(np.float64)
-    p = backproject(rows, cols, z, K)
-
-    def tangent(dr: int, dc: int) -> tuple[np.ndarray, np.ndarray]:
-        sides, oks = [], []
-        for s in (step, -step):
-            r2, c2 = np.clip(rows + s * dr, 0, h - 1), np.clip(cols + s * dc, 0, w - 1)
-            z2 = depth[r2, c2].astype(np.float64)
-            ok = (z2 > 0) & (np.abs(z2 - z) <= jump * z) & ((r2 != rows) | (c2 != cols))
-            sides.append((backproject(r2, c2, z2, K) - p) * (1 if s > 0 else -1))
-            oks.append(ok)
-        (f, b), (okf, okb) = sides, oks
-        t = np.where(okf[:, None], f, 0) + np.where(okb[:, None], b, 0)
-        return t, okf | okb
-
-    tu, oku = tangent(0, 1)
-    tv, okv = tangent(1, 0)
-    n = np.cross(tu, tv)
-    norm = np.linalg.norm(n, axis=1)
-    good = oku & okv & (norm > 1e-12)
-    toward = -p / np.linalg.norm(p, axis=1, keepdims=True)
-    n = np.where(good[:, None], n / np.where(good, norm, 1)[:, None], toward)
-    n *= np.where(np.einsum("ij,ij->i", n, p) > 0, -1.0, 1.0)[:, None]
-    return n.astype(np.float32)
 
 
 def instance_image(masks: list[np.ndarray], shape: tuple[int, int]) -> np.ndarray:
@@ -337,19 +264,10 @@ class Labeller:
                 else np.zeros(0, np.float32)
         fract = np.clip(fract, 0, 1)
 
-        valid = (depth > 0) & (depth <= (np.inf if cfg.max_depth is None else cfg.max_depth))
-        flat = np.flatnonzero(valid)
-        rows, cols = flat // w, flat % w
         rng = np.random.default_rng([cfg.seed, scene.scene_id, im_id])
-        voxelise = cfg.voxel > 0 and len(flat) > cfg.max_points
-        pts = backproject(rows, cols, depth.reshape(-1)[flat].astype(np.float64), K) if voxelise else None
-        keep = subsample(len(flat), pts, cfg.max_points, cfg.voxel, rng)
-        flat, rows, cols = flat[keep], rows[keep], cols[keep]
-        pts = backproject(rows, cols, depth.reshape(-1)[flat].astype(np.float64), K)
-
-        normals = grid_normals(smooth_depth(depth), K, rows, cols)
-        colour = (rgb.reshape(-1, 3)[flat].astype(np.float32) / 255.0) if rgb is not None \
-            else np.zeros((len(flat), 3), np.float32)
+        fp = frame_points(depth, K, rgb, cfg.max_points, cfg.voxel, rng, cfg.max_depth)
+        flat, rows, cols = fp.flat, fp.rows, fp.cols
+        pts = fp.features[:, :3].astype(np.float64)
         inst_img = instance_image(masks, (h, w))
         instance = inst_img.reshape(-1)[flat]
         obj_ids = np.array([g.obj_id for g in gts], np.int32)
@@ -364,7 +282,7 @@ class Labeller:
             R=R.astype(np.float32), t=t.astype(np.float32), control_points=cps.astype(np.float32),
             visib_fract=fract, num_points=np.bincount(instance[instance >= 0], minlength=len(gts)).astype(np.int32),
         )
-        features = np.concatenate([pts.astype(np.float32), colour, normals], axis=1)
+        features = fp.features
         frame = FrameLabels(
             scene_id=scene.scene_id, im_id=im_id, cam_K=np.asarray(K, np.float32),
             image_size=np.array([h, w], np.int32), features=features,

@@ -16,11 +16,9 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from argen import bop
-from argen.capture import SceneJsons
 from argen.errors import ArgenError
 from argen.fileio import read_json, write_json
 
-SCENE_FILES = ("scene_camera", "scene_gt", "scene_gt_info")
 
 
 @dataclass
@@ -101,20 +99,21 @@ def merge_captures(shard_dirs: list[Path], out: Path, overwrite: bool = False) -
     shutil.copytree(shards[0].root / "models", tmp / "models")
     if (shards[0].root / "models_eval").is_dir():
         shutil.copytree(shards[0].root / "models_eval", tmp / "models_eval")
-    shutil.copyfile(shards[0].root / "camera.json", tmp / "camera.json")
-    jsons = SceneJsons(tmp, split)
+    shutil.copyfile(shards[0].root / bop.CAMERA_FILE, tmp / bop.CAMERA_FILE)
+    jsons = bop.SceneJsons(tmp, split)
     for s in shards:
         split_dir = s.root / split
         for scene_dir in sorted(p for p in split_dir.iterdir() if p.is_dir()) if split_dir.is_dir() else []:
             sid = int(scene_dir.name)
-            merged = jsons._load(sid)
-            for name in SCENE_FILES:
-                part = read_json(scene_dir / f"{name}.json", f"{name}.json") if (scene_dir / f"{name}.json").is_file() else {}
+            merged = jsons.scene(sid)
+            parts = bop.load_scene_jsons(s.root, split, sid)
+            for name in bop.SCENE_FILES:
+                part = parts[name]
                 clash = set(part) & set(merged[name])
                 if clash:
                     raise ArgenError(f"scene {sid} image {sorted(clash, key=int)[0]} appears in two shards")
                 merged[name].update(part)
-            jsons.dirty.add(sid)
+            jsons.touch(sid)
             for f in scene_dir.rglob("*"):
                 if f.is_file() and f.suffix != ".json" and not f.name.startswith(".tmp-"):
                     _link_or_copy(f, tmp / split / scene_dir.name / f.relative_to(scene_dir))

@@ -15,24 +15,8 @@ import numpy as np
 
 from argen import bop
 from argen.errors import ArgenError
+from argen.features import BOX_EDGES, palette, project
 from argen.h5 import FrameLabels, LabelFile
-
-EDGES = [(k, k ^ b) for k in range(8) for b in (1, 2, 4) if k < k ^ b]  # the 12 box edges (product order)
-
-
-def palette(n: int) -> np.ndarray:
-    """(n,3) uint8 distinct, saturated RGB colours (golden-ratio hues)."""
-    hues = (np.arange(n) * 0.618034 % 1.0 * 180).astype(np.uint8)
-    hsv = np.stack([hues, np.full(n, 230, np.uint8), np.full(n, 255, np.uint8)], axis=1)[None]
-    return cv2.cvtColor(hsv, cv2.COLOR_HSV2RGB)[0]
-
-
-def project(points: np.ndarray, K: np.ndarray) -> np.ndarray:
-    """Pixel (x, y) of camera-frame points. points: (..., 3) metres; K: (3,3). Returns (..., 2) float64."""
-    p = np.asarray(points, np.float64)
-    z = np.where(p[..., 2:3] > 1e-6, p[..., 2:3], 1e-6)
-    return np.stack([K[0, 0] * p[..., 0] / z[..., 0] + K[0, 2], K[1, 1] * p[..., 1] / z[..., 0] + K[1, 2]], axis=-1)
-
 
 def splat(frame: FrameLabels) -> np.ndarray:
     """(H,W,3) uint8 image of the points' colours at their pixels (3x3 dots), black elsewhere."""
@@ -61,7 +45,7 @@ def draw_frame(frame: FrameLabels, rgb: np.ndarray | None = None, alpha: float =
             continue
         uv = np.round(project(cps, K) * 16).astype(np.int32)  # 4 fractional bits for cv2 shift
         colour = tuple(int(v) for v in cols[k])
-        for a, b in EDGES:
+        for a, b in BOX_EDGES:
             cv2.line(img, tuple(uv[a]), tuple(uv[b]), colour, 1, cv2.LINE_AA, shift=4)
         cv2.circle(img, tuple(uv[8]), 3 * 16, colour, -1, cv2.LINE_AA, shift=4)
         txt = f"{frame.instances.obj_id[k]}"

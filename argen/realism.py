@@ -15,7 +15,7 @@ import numpy as np
 import open3d as o3d
 
 from argen import bop
-from argen.label import backproject
+from argen.features import backproject
 from argen.objects import ObjectModel, surface_scene
 
 #: Distance bins of the benchmark, metres (the camera-to-point depth z).

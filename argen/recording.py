@@ -22,7 +22,6 @@ import numpy as np
 
 from argen import bop
 from argen.errors import ArgenError
-from argen.fileio import read_json
 
 RGB_EXTS = (".png", ".jpg", ".jpeg")
 PLAUSIBLE_DEPTH_M = (0.1, 10.0)  # median valid depth of a frame, metres
@@ -80,23 +79,6 @@ def read_depth_png(path: Path, depth_scale: float) -> np.ndarray:
     return depth
 
 
-def _intrinsics(cam: dict, where: Path) -> np.ndarray:
-    try:
-        if "K" in cam:
-            K = np.array(cam["K"], float).reshape(3, 3)
-        elif "cam_K" in cam:
-            K = np.array(cam["cam_K"], float).reshape(3, 3)
-        else:
-            K = np.array([[cam["fx"], 0, cam["cx"]], [0, cam["fy"], cam["cy"]], [0, 0, 1]], float)
-    except KeyError as exc:
-        raise ArgenError(f"{where}: no intrinsics: give fx, fy, cx, cy (or cam_K / K); missing {exc}") from None
-    except (TypeError, ValueError) as exc:
-        raise ArgenError(f"{where}: malformed intrinsics ({exc})") from None
-    if not (np.isfinite(K).all() and K[0, 0] > 0 and K[1, 1] > 0 and K[0, 1] == 0 and (K[2] == [0, 0, 1]).all()):
-        raise ArgenError(f"{where}: intrinsics must be [[fx, 0, cx], [0, fy, cy], [0, 0, 1]] with fx, fy > 0")
-    return K
-
-
 def _frames(folder: Path, exts: tuple[str, ...]) -> dict[str, Path]:
     if not folder.is_dir():
         raise ArgenError(f"recording folder has no {folder.name}/ subfolder: {folder}")
@@ -128,20 +110,18 @@ def open_recording(root: str | Path, depth_scale: float | None = None) -> Record
     root = Path(root)
     if not root.is_dir():
         raise ArgenError(f"recording folder not found: {root}")
-    cam_p = root / "camera.json"
+    cam_p = root / bop.CAMERA_FILE
     if not cam_p.is_file():
         raise ArgenError(f"recording {root} has no camera.json (intrinsics fx, fy, cx, cy and depth_scale)")
-    cam = read_json(cam_p, "camera.json")
-    if not isinstance(cam, dict):
-        raise ArgenError(f"{cam_p} must hold an object with fx, fy, cx, cy and depth_scale")
-    K = _intrinsics(cam, cam_p)
-    if any(float(v) != 0.0 for v in np.ravel(cam.get("dist", []))):
+    cam = bop.load_camera(cam_p)
+    K = cam.K
+    if any(v != 0.0 for v in cam.dist):
         raise ArgenError(f"{cam_p} gives distortion coefficients: undistort the frames first (argen renders a pinhole camera)")
     if depth_scale is None:
-        if "depth_scale" not in cam:
+        if cam.depth_scale is None:
             raise ArgenError(f"{cam_p} has no depth_scale (mm per depth-PNG unit, 1.0 for RealSense); "
                              "add it or pass --depth-scale")
-        depth_scale = cam["depth_scale"]
+        depth_scale = cam.depth_scale
     try:
         depth_scale = float(depth_scale)
     except (TypeError, ValueError):
@@ -158,8 +138,8 @@ def open_recording(root: str | Path, depth_scale: float | None = None) -> Record
     names = sorted(rgb)
     first = bop.read_rgb(rgb[names[0]])
     h, w = first.shape[:2]
-    if ("width" in cam and int(cam["width"]) != w) or ("height" in cam and int(cam["height"]) != h):
-        raise ArgenError(f"{cam_p} says {cam.get('width')}x{cam.get('height')} but the frames are {w}x{h}")
+    if (cam.width is not None and cam.width != w) or (cam.height is not None and cam.height != h):
+        raise ArgenError(f"{cam_p} says {cam.width}x{cam.height} but the frames are {w}x{h}")
     rec = Recording(root, K, depth_scale, w, h, names, [rgb[n] for n in names], [depth[n] for n in names],
                     _timestamps(root / "timestamps.txt", names))
     rec.read(0)  # size and depth-unit checks on the first frame before any work starts
@@ -170,11 +150,8 @@ def write_recording(root: str | Path, K: np.ndarray, frames: list[tuple[np.ndarr
                     depth_scale: float = 1.0, timestamps: np.ndarray | None = None) -> None:
     """Write frames [(rgb (H, W, 3) uint8, depth (H, W) metres)] as a recording folder (names 000000...)."""
     root = Path(root)
-    from argen.fileio import write_json
-
     h, w = frames[0][1].shape
-    write_json(root / "camera.json", {"fx": float(K[0, 0]), "fy": float(K[1, 1]), "cx": float(K[0, 2]),
-                                      "cy": float(K[1, 2]), "width": w, "height": h, "depth_scale": depth_scale})
+    bop.save_camera(root / bop.CAMERA_FILE, K, w, h, depth_scale)
     for i, (rgb, depth) in enumerate(frames):
         bop.write_png(root / "rgb" / f"{i:06d}.png", rgb)
         bop.write_depth(root / "depth" / f"{i:06d}.png", depth, depth_scale)

@@ -265,7 +265,7 @@ def _prepare(out: Path, overwrite: bool, split: str) -> None:
     if out.is_dir() and any(out.iterdir()):
         if not overwrite:
             raise ArgenError(f"output folder {out} is not empty; use --overwrite or choose another --out")
-        for name in ("argen.json", "replace_log.json", "camera.json"):
+        for name in ("argen.json", "replace_log.json", bop.CAMERA_FILE):
             (out / name).unlink(missing_ok=True)
         for name in ("models", split):
             if (out / name).is_dir():
@@ -310,15 +310,15 @@ def replace_dataset(dataset: str | Path, out: str | Path, split: str = "test", m
     chosen = select_frames(candidates, fraction, rng)
     _prepare(out, overwrite, split)
     write_models(out / "models", list(objs.values()))
-    if (dataset / "camera.json").is_file():
-        shutil.copyfile(dataset / "camera.json", out / "camera.json")
+    if (dataset / bop.CAMERA_FILE).is_file():
+        shutil.copyfile(dataset / bop.CAMERA_FILE, out / bop.CAMERA_FILE)
     write_json(out / "argen.json", {"argen_version": __version__, "kind": "replace", "source": str(dataset.resolve()),
                                     "split": split, "fraction": fraction, "step_deg": step_deg, "seed": seed,
                                     "noise": noise is not None and noise.enabled, "obj_id": obj_id,
                                     "units": "BOP (mm)", "frames": [list(c) for c in chosen]})
     n = int(round(360.0 / step_deg))
     log, written = [], 0
-    jsons: dict[int, dict[str, dict]] = {}
+    jsons = bop.SceneJsons(out, split)
     from tqdm import tqdm
 
     for sid, im in tqdm(chosen, desc="replace", unit="frame", disable=not progress, file=sys.stderr):
@@ -327,19 +327,15 @@ def replace_dataset(dataset: str | Path, out: str | Path, split: str = "test", m
         renderer = get_renderer(w, h)
         frng = np.random.default_rng(np.random.SeedSequence([seed, sid, im]))
         copies = replace_frame(renderer, sc, im, targets[(sid, im)], objs, step_deg, noise, frng)
-        js = jsons.setdefault(sid, {"scene_camera": {}, "scene_gt": {}, "scene_gt_info": {}})
         for k, c in enumerate(copies):
             oim = im * n + k
             _write_frame(out, split, sid, oim, c, depth_scale)
-            js["scene_camera"][str(oim)] = bop.camera_entry(sc.cameras[im].K, depth_scale, c["T_cam_world"])
-            js["scene_gt"][str(oim)] = [bop.gt_entry(o, R, t) for o, R, t in c["gts"]]
-            js["scene_gt_info"][str(oim)] = [bop.gt_info_entry(mf, mv, c["depth"], c["outside"].get(g))
-                                             for g, (mf, mv) in enumerate(c["masks"])]
+            jsons.add(sid, oim, bop.camera_entry(sc.cameras[im].K, depth_scale, c["T_cam_world"]),
+                      [bop.gt_entry(o, R, t) for o, R, t in c["gts"]],
+                      [bop.gt_info_entry(mf, mv, c["depth"], c["outside"].get(g)) for g, (mf, mv) in enumerate(c["masks"])])
             log.append({"scene_id": sid, "im_id": oim, **c["log"]})
             written += 1
-    for sid, js in jsons.items():
-        for name, content in js.items():
-            write_json(bop.scene_dir(out, split, sid) / f"{name}.json", content, indent=None)
+    jsons.flush()
     write_json(out / "replace_log.json", {"frames": log}, indent=1)
     return ReplaceSummary(len(chosen), written, time.perf_counter() - t_start, notes)
 

@@ -14,7 +14,7 @@ from typing import Optional
 import typer
 import yaml
 
-from detector.errors import DetectorError
+from detector.errors import DetectorError, argen_errors
 
 app = typer.Typer(add_completion=False, no_args_is_help=True, pretty_exceptions_enable=False,
                   help="detector: a multi-task PointNet++ for 6-DoF pose from depth (train, eval, predict).")
@@ -38,17 +38,17 @@ def fail(msg: str, code: int = 2) -> None:
 
 
 def user_errors(fn):
-    """Turn DetectorError and argen's ArgenError (from reading label files) into one line and exit 2;
-    Ctrl-C into a hint and exit 130."""
-    from argen.errors import ArgenError
+    """Turn DetectorError (and argen's errors, through :func:`detector.errors.argen_errors`) into one line and
+    exit 2; Ctrl-C into a hint and exit 130."""
 
     @functools.wraps(fn)
     def wrapper(*args, **kwargs):
         try:
-            return fn(*args, **kwargs)
+            with argen_errors():
+                return fn(*args, **kwargs)
         except KeyboardInterrupt:
             fail("interrupted; add --resume to continue from the last checkpoint", 130)
-        except (DetectorError, ArgenError) as exc:
+        except DetectorError as exc:
             fail(str(exc))
 
     return wrapper

@@ -12,7 +12,6 @@ Network input ``features`` (N, 9) float32 is ``[X, Y, Z, R', G', B', Nx, Ny, Nz]
 
 from __future__ import annotations
 
-import contextlib
 import os
 from collections.abc import Iterator, Sequence
 from pathlib import Path
@@ -21,7 +20,7 @@ import numpy as np
 import torch
 
 from detector.crops import training_crop
-from detector.errors import DetectorError
+from detector.errors import DetectorError, argen_errors
 
 #: Colour normalisation of the network input; the label file stores colour in [0, 1].
 NORMALISATION: dict[str, float] = {"rgb_mean": 0.5, "rgb_std": 0.25}
@@ -112,22 +111,11 @@ def sampling_indices(xyz: np.ndarray, specs: list[tuple[int, float, int]]) -> di
 # ------------------------------------------------------------------------------------------------- dataset
 
 
-@contextlib.contextmanager
-def label_file_errors() -> Iterator[None]:
-    """Re-raise argen's ArgenError (a missing, truncated or foreign label file) as a :class:`DetectorError`."""
-    from argen.errors import ArgenError
-
-    try:
-        yield
-    except ArgenError as exc:
-        raise DetectorError(str(exc)) from None
-
-
 def open_label_file(path: str | Path):
     """Open a label file through :mod:`argen.h5`; a missing or malformed file is a :class:`DetectorError`."""
     from argen.h5 import LabelFile
 
-    with label_file_errors():
+    with argen_errors():
         return LabelFile(Path(path))
 
 
@@ -163,7 +151,7 @@ class FrameSource(torch.utils.data.Dataset):
         self._pid = None
         lf = open_label_file(self.path)
         try:
-            with label_file_errors():
+            with argen_errors():
                 self.num_frames = int(lf.num_frames)
                 self.objects = object_table_dict(lf.objects)
                 if self.num_frames == 0:
@@ -206,7 +194,7 @@ class FrameSource(torch.utils.data.Dataset):
         index = int(index)
         if not 0 <= index < self.num_frames:
             raise IndexError(f"frame {index} out of range (0..{self.num_frames - 1})")
-        with label_file_errors():
+        with argen_errors():
             frame = self._label_file().frame(index)
         check_frame(frame, self.path, index)
         return frame, self.rng(epoch, index), index

@@ -15,9 +15,12 @@ from dataclasses import dataclass, replace
 from pathlib import Path
 from types import SimpleNamespace
 
+import cv2
 import numpy as np
 
-from detector.errors import DetectorError
+from argen import bop
+from argen.features import BOX_EDGES, frame_points, palette, project
+from detector.errors import DetectorError, argen_errors
 from detector.pose import Detection, ObjectInfo, PoseConfig
 
 MAX_POINTS = 30000  # as argen label's default max_points
@@ -45,20 +48,10 @@ def depth_features(depth: np.ndarray, K: np.ndarray, rgb: np.ndarray | None, max
 
     depth: (H,W) float32 metres, 0 = missing; K: (3,3); rgb: (H,W,3) uint8 or None. Returns (N,9) float32.
     """
-    from argen.label import backproject, grid_normals, smooth_depth, subsample
-
-    h, w = depth.shape
-    valid = (depth > 0) & (depth <= (np.inf if max_depth is None else max_depth))
-    flat = np.flatnonzero(valid)
-    if len(flat) == 0:
+    features = frame_points(depth, K, rgb, max_points, 0.0, np.random.default_rng(seed), max_depth).features
+    if len(features) == 0:
         raise DetectorError("the depth image has no valid pixels")
-    flat = flat[subsample(len(flat), None, max_points, 0.0, np.random.default_rng(seed))]
-    rows, cols = flat // w, flat % w
-    pts = backproject(rows, cols, depth.reshape(-1)[flat].astype(np.float64), K)
-    normals = grid_normals(smooth_depth(depth), K, rows, cols)
-    colour = rgb.reshape(-1, 3)[flat].astype(np.float32) / 255.0 if rgb is not None else np.zeros((len(flat), 3),
-                                                                                                  np.float32)
-    return np.concatenate([pts.astype(np.float32), colour, normals], axis=1)
+    return features
 
 
 def parse_K(text: str) -> np.ndarray:
@@ -74,20 +67,8 @@ def parse_K(text: str) -> np.ndarray:
     raise DetectorError(f"--K: expected 4 (fx,fy,cx,cy) or 9 values, got {len(v)}")
 
 
-def read_camera_json(path: Path) -> tuple[np.ndarray, float]:
-    """K (3,3) and depth_scale from a BOP ``camera.json`` (fx, fy, cx, cy, depth_scale)."""
-    try:
-        c = json.loads(Path(path).read_text())
-        K = np.array([[c["fx"], 0, c["cx"]], [0, c["fy"], c["cy"]], [0, 0, 1]], np.float64)
-        return K, float(c.get("depth_scale", 1.0))
-    except (OSError, ValueError, KeyError, TypeError) as exc:
-        raise DetectorError(f"{path}: not a readable BOP camera.json ({type(exc).__name__}: {exc})") from None
-
-
 def load_bop_frame(split_dir: Path, scene_id: int, im_id: int, **kw) -> PointInput:
     """A BOP frame ``SPLIT_DIR/scene_id/im_id`` (e.g. ``ds/test/000001`` + image 3)."""
-    from argen import bop
-
     split_dir = Path(split_dir)
     scene = bop.load_scene(split_dir.parent, split_dir.name, scene_id)
     if im_id not in scene.cameras:
@@ -101,8 +82,6 @@ def load_bop_frame(split_dir: Path, scene_id: int, im_id: int, **kw) -> PointInp
 
 def load_depth_png(path: Path, K: np.ndarray, depth_scale: float, rgb_path: Path | None = None, **kw) -> PointInput:
     """A depth PNG (value x depth_scale = millimetres, BOP convention) with intrinsics K (3,3), optional RGB."""
-    from argen import bop
-
     depth = bop.read_depth(path, depth_scale)
     rgb = bop.read_rgb(rgb_path) if rgb_path else None
     if rgb is not None and rgb.shape[:2] != depth.shape:
@@ -159,11 +138,13 @@ def load_input(spec: str, K: str | None = None, depth_scale: float | None = None
         if K is not None:
             Km = parse_K(K)
         else:
-            cam = camera or next((c for c in (p.parent / "camera.json", p.parent.parent / "camera.json")
+            cam = camera or next((c for c in (p.parent / bop.CAMERA_FILE, p.parent.parent / bop.CAMERA_FILE)
                                   if c.is_file()), None)
             if cam is None:
                 raise DetectorError(f"{p}: give the intrinsics with --K fx,fy,cx,cy or --camera camera.json")
-            Km, scale = read_camera_json(cam)
+            with argen_errors():
+                c = bop.load_camera(cam)
+            Km, scale = c.K, (c.depth_scale if c.depth_scale is not None else 1.0)
         return load_depth_png(p, Km, depth_scale if depth_scale is not None else scale, rgb,
                               max_points=max_points, seed=seed)
     parts = p.parts
@@ -176,8 +157,6 @@ def load_input(spec: str, K: str | None = None, depth_scale: float | None = None
 def splat_cloud(features: np.ndarray, K: np.ndarray, size: tuple[int, int]) -> np.ndarray:
     """(H,W,3) uint8 view of the points (N,9) through K (3,3), size (h, w): colour when present, else grey shading
     by normal; nearer points drawn over farther ones."""
-    from argen.preview import project
-
     h, w = size
     uv = np.round(project(features[:, :3], K)).astype(np.int64)
     ok = (features[:, 2] > 0) & (uv[:, 0] >= 0) & (uv[:, 0] < w) & (uv[:, 1] >= 0) & (uv[:, 1] < h)
@@ -188,8 +167,6 @@ def splat_cloud(features: np.ndarray, K: np.ndarray, size: tuple[int, int]) -> n
     img = np.zeros((h, w, 3), np.uint8)
     idx = np.flatnonzero(ok)[order]
     img[uv[idx, 1], uv[idx, 0]] = np.clip(col[idx] * 255 + 0.5, 0, 255).astype(np.uint8)
-    import cv2
-
     k = int(np.clip(np.sqrt(h * w / max(len(idx), 1)), 3, 9))  # dots about as wide as the point spacing
     return cv2.dilate(img, np.ones((k, k), np.uint8))
 
@@ -197,10 +174,6 @@ def splat_cloud(features: np.ndarray, K: np.ndarray, size: tuple[int, int]) -> n
 def draw_detections(image: np.ndarray, K: np.ndarray, detections: list[Detection], objects: ObjectInfo,
                     names: dict[int, str] | None = None) -> np.ndarray:
     """The image (H,W,3) uint8 with each detection's 3D box (model control points under its pose) drawn."""
-    import cv2
-
-    from argen.preview import EDGES, palette, project
-
     img = image.copy()
     cols = palette(max(len(detections), 1))
     for k, d in enumerate(detections):
@@ -209,7 +182,7 @@ def draw_detections(image: np.ndarray, K: np.ndarray, detections: list[Detection
             continue
         uv = np.round(project(cps, K) * 16).astype(np.int64)
         colour = tuple(int(v) for v in cols[k])
-        for a, b in EDGES:
+        for a, b in BOX_EDGES:
             cv2.line(img, tuple(map(int, uv[a])), tuple(map(int, uv[b])), colour, 2, cv2.LINE_AA, shift=4)
         label = f"{(names or {}).get(d.obj_id, d.obj_id)} {d.score:.2f}"
         cv2.putText(img, label, (int(uv[8][0] / 16) + 5, int(uv[8][1] / 16) - 5), cv2.FONT_HERSHEY_SIMPLEX, 0.5,
@@ -228,8 +201,6 @@ def predict(predictor, inp: PointInput, objects: ObjectInfo, out_dir: Path, cfg:
             names: dict[int, str] | None = None, poser=None) -> dict:
     """Run ``predictor`` (see :mod:`detector.evaluate`) and the pose stage (with a two-stage model's ``poser``)
     on ``inp``; write poses.json and poses.png into ``out_dir``. Returns the JSON content."""
-    import cv2
-
     from detector.evaluate import estimate
 
     cfg = cfg or PoseConfig()

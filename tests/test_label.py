@@ -20,7 +20,8 @@ from typer.testing import CliRunner
 from argen.cli import app
 from argen.errors import ArgenError
 from argen.h5 import LabelFile
-from argen.label import (LabelConfig, LabelRequest, grid_normals, object_table, run_label, sample_surface,
+from argen.features import grid_normals
+from argen.label import (LabelConfig, LabelRequest, object_table, run_label, sample_surface,
                          symmetry_transforms)
 from argen.objects import builtin_objects, load_models
 
