@@ -4,7 +4,7 @@ Everything this module returns is in metres; everything it is given is in metres
 BOP millimetres on the way out. Layout (https://github.com/thodan/bop_toolkit/blob/master/docs/bop_datasets_format.md):
 
     DATASET/models/{models_info.json, obj_OBJID.ply}
-    DATASET/camera.json    (also the intrinsics of a recording folder, argen.recording)
+    DATASET/camera.json    (also the intrinsics of a recording folder, argen.real.recording)
     DATASET/SPLIT/SCENE/{scene_camera.json, scene_gt.json, scene_gt_info.json}
     DATASET/SPLIT/SCENE/rgb/IMID.{png,jpg}  (JPEG in pbr splits, e.g. train_pbr, as BOP's toolkit expects)
     DATASET/SPLIT/SCENE/depth/IMID.png
@@ -188,6 +188,7 @@ def model_path(models_dir: str | os.PathLike, obj_id: int) -> Path:
 def read_mesh(path: str | os.PathLike):
     """Load a BOP PLY model (mm) as a ``trimesh.Trimesh`` in metres, keeping vertex colours and the file's vertex
     normals (written back unchanged by :func:`write_mesh`; computed from the faces when the file has none)."""
+    # lazy: trimesh loads in about a second and only mesh files need it
     import trimesh
 
     path = Path(path)

@@ -2,22 +2,19 @@
 
 Every stage of the capture pipeline reads its parameters from one of these dataclasses. Units are
 metres and degrees as named in each field. Loading is strict: an unknown key, a wrong type or an
-out-of-range value is an :class:`ArgenError` naming the key.
+out-of-range value is an :class:`ArgenError` naming the key (the loader is :mod:`argen.settings`, shared with
+``detector``; the range checks are :func:`validate`).
 """
 
 from __future__ import annotations
 
-import dataclasses
-import difflib
-import types
-import typing
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import numpy as np
-import yaml
 
+from argen import settings
 from argen.errors import ArgenError
 
 TEMPLATES_DIR = Path(__file__).resolve().parent / "templates"
@@ -101,7 +98,7 @@ class ARConfig:
 
 @dataclass
 class NoiseConfig:
-    """Depth-sensor model (``argen.noise``). The defaults are the plain Kinect v1 model of Nguyen et al. 2012;
+    """Depth-sensor model (``argen.sim.noise``). The defaults are the plain Kinect v1 model of Nguyen et al. 2012;
     the sensor profiles (``argen/sensors/*.yaml``) switch on and calibrate the other effects."""
 
     enabled: bool = True
@@ -201,7 +198,7 @@ def load_sensor(name: str) -> dict:
     path = SENSORS_DIR / f"{name}.yaml"
     if not path.is_file():
         raise ArgenError(f"unknown sensor '{name}' (available: {', '.join(available_sensors())})")
-    data = yaml.safe_load(path.read_text()) or {}
+    data = settings.load_yaml(path, "sensor profile")
     for key in ("camera", "noise"):
         if not isinstance(data.get(key), dict):
             raise ArgenError(f"sensor profile {path.name} has no '{key}' section")
@@ -224,14 +221,7 @@ def load_template(name_or_path: str | Path, sensor: str | None = None) -> Templa
             )
     if not path.is_file():
         raise ArgenError(f"template file not found: {path}")
-    try:
-        data = yaml.safe_load(path.read_text())
-    except yaml.YAMLError as exc:
-        raise ArgenError(f"template {path} is not valid YAML: {str(exc).splitlines()[0]}") from exc
-    if data is None:
-        data = {}
-    if not isinstance(data, dict):
-        raise ArgenError(f"template {path.name}: expected a mapping, got {type(data).__name__}")
+    data = settings.load_yaml(path, "template file")
     name = sensor or data.get("sensor") or TemplateConfig.sensor
     profile = load_sensor(str(name))
     data = dict(data, sensor=str(name))
@@ -244,60 +234,9 @@ def load_template(name_or_path: str | Path, sensor: str | None = None) -> Templa
 
 
 def from_dict(cls: type, data: Any, where: str = "config") -> Any:
-    """Build dataclass ``cls`` from a mapping, strictly: unknown keys and wrong types are errors."""
-    if not isinstance(data, dict):
-        raise ArgenError(f"{where}: expected a mapping for {cls.__name__}, got {type(data).__name__}")
-    hints = typing.get_type_hints(cls)
-    fields = {f.name: f for f in dataclasses.fields(cls)}
-    kwargs = {}
-    for key, value in data.items():
-        if key not in fields:
-            close = difflib.get_close_matches(str(key), fields, n=1)
-            hint = f" (did you mean '{close[0]}'?)" if close else ""
-            raise ArgenError(f"{where}: unknown key '{key}'{hint}")
-        kwargs[key] = _coerce(hints[key], value, f"{where}: {key}")
-    obj = cls(**kwargs)
-    validate(obj, where)
-    return obj
-
-
-def _coerce(tp: Any, value: Any, where: str) -> Any:
-    origin = typing.get_origin(tp)
-    args = typing.get_args(tp)
-    if dataclasses.is_dataclass(tp):
-        return from_dict(tp, value, where)
-    if origin in (typing.Union, types.UnionType):
-        if value is None and type(None) in args:
-            return None
-        inner = [a for a in args if a is not type(None)]
-        return _coerce(inner[0], value, where)
-    if origin is tuple:
-        if not isinstance(value, (list, tuple)) or len(value) != len(args):
-            raise ArgenError(f"{where}: expected a list of {len(args)} values, got {value!r}")
-        return tuple(_coerce(a, v, where) for a, v in zip(args, value))
-    if origin is list:
-        if isinstance(value, str):
-            value = [v for v in value.split(",") if v]
-        if not isinstance(value, (list, tuple)):
-            raise ArgenError(f"{where}: expected a list, got {value!r}")
-        return [_coerce(args[0], v, where) for v in value]
-    if tp is bool:
-        if isinstance(value, bool):
-            return value
-        raise ArgenError(f"{where}: expected true or false, got {value!r}")
-    if tp is int:
-        if isinstance(value, bool) or not isinstance(value, int):
-            raise ArgenError(f"{where}: expected an integer, got {value!r}")
-        return value
-    if tp is float:
-        if isinstance(value, bool) or not isinstance(value, (int, float)):
-            raise ArgenError(f"{where}: expected a number, got {value!r}")
-        return float(value)
-    if tp is str:
-        if not isinstance(value, (str, int)):
-            raise ArgenError(f"{where}: expected a string, got {value!r}")
-        return str(value)
-    return value
+    """Build dataclass ``cls`` from a mapping, strictly (:func:`argen.settings.from_dict`), with the range checks
+    of :func:`validate`."""
+    return settings.from_dict(cls, data, where, check=validate)
 
 
 def _check(cond: bool, where: str, msg: str) -> None:
@@ -362,30 +301,9 @@ def validate(obj: Any, where: str = "config") -> None:
 
 def to_dict(cfg: Any) -> dict:
     """Plain dict of a config dataclass (tuples as lists), for ``argen.json``."""
-
-    def conv(v: Any) -> Any:
-        if isinstance(v, tuple):
-            return [conv(x) for x in v]
-        if isinstance(v, list):
-            return [conv(x) for x in v]
-        if isinstance(v, dict):
-            return {k: conv(x) for k, x in v.items()}
-        return v
-
-    return conv(dataclasses.asdict(cfg))
+    return settings.to_dict(cfg)
 
 
 def override(cfg: TemplateConfig, dotted: dict[str, Any]) -> TemplateConfig:
     """Return a copy of ``cfg`` with ``{"camera.distance": (0.5, 1.0), ...}`` applied and validated."""
-    data = to_dict(cfg)
-    for key, value in dotted.items():
-        node = data
-        parts = key.split(".")
-        for p in parts[:-1]:
-            if p not in node or not isinstance(node[p], dict):
-                raise ArgenError(f"unknown option '{key}'")
-            node = node[p]
-        if parts[-1] not in node:
-            raise ArgenError(f"unknown option '{key}'")
-        node[parts[-1]] = list(value) if isinstance(value, tuple) else value
-    return from_dict(TemplateConfig, data, where="options")
+    return settings.apply_sets(cfg, dotted, "options", check=validate)

@@ -4,7 +4,7 @@ One frame (``Labeller.label_frame``):
 1. Depth (BOP, ``depth_scale``) -> metres; pixels with depth in (0, ``max_depth``] are points,
    back-projected with cam_K: ``X = (col - cx) Z / fx``, ``Y = (row - cy) Z / fy``.
 2. Instance masks: the dataset's ``mask_visib`` when every instance has one; otherwise (real test sets)
-   the ground-truth poses are rendered (argen.render, one renderer per process) and a pixel is visible
+   the ground-truth poses are rendered (argen.sim.render, one renderer per process) and a pixel is visible
    for the front-most rendered instance when the sensor depth agrees with the rendered depth within
    ``visib_tolerance``. Where masks overlap, the lower gt index wins. A masked pixel whose point lies
    more than ``FAR_MARGIN`` outside the object's bounding sphere (box centre, half box diagonal) is
@@ -49,6 +49,7 @@ from pathlib import Path
 
 import cv2
 import numpy as np
+from tqdm import tqdm
 
 from argen import __version__, bop
 from argen.config import PIXEL_CENTRES, simulation_K
@@ -56,7 +57,7 @@ from argen.errors import ArgenError
 from argen.features import frame_points
 from argen.fileio import read_json, write_json
 from argen.h5 import FrameLabels, InstanceTable, LabelFile, LabelWriter, ObjectTable, point_control_points
-from argen.objects import ObjectModel, load_models
+from argen.models.objects import ObjectModel, load_models
 
 CHUNK = 16  # frames per partial file
 FAR_MARGIN = 0.01  # metres beyond an object's bounding sphere where a masked pixel is taken as background
@@ -190,7 +191,8 @@ class Labeller:
     def _render_masks(self, gts: list[bop.FrameGT], K: np.ndarray, depth: np.ndarray, full: bool):
         """Visible masks (H,W) bool, and when ``full`` the pixel counts of the whole silhouettes, of the GT
         instances, by rendering them."""
-        from argen.render import RenderItem, get_renderer
+        # lazy: pyrender (OSMesa) loads in a second; only datasets without masks are rendered
+        from argen.sim.render import RenderItem, get_renderer
 
         h, w = depth.shape
         r = get_renderer(w, h)
@@ -502,8 +504,6 @@ def run_label(req: LabelRequest) -> LabelSummary:
     todo = [k for k in mine if not part_path(partial, k).is_file()]
     n_mine = sum(len(frames[k * req.chunk:(k + 1) * req.chunk]) for k in mine)
     skipped = n_mine - sum(len(frames[k * req.chunk:(k + 1) * req.chunk]) for k in todo)
-
-    from tqdm import tqdm
 
     bar = tqdm(total=n_mine, initial=skipped,
                desc="label", unit="frame", disable=not req.progress, file=sys.stderr)

@@ -20,7 +20,6 @@ from argen.errors import ArgenError
 from argen.fileio import read_json, write_json
 
 
-
 @dataclass
 class Shard:
     """One shard folder: its argen.json, its capture log entries (by frame index) and its (I, N)."""

@@ -8,6 +8,7 @@ and each instance's 3D box drawn from its 9 control points (12 edges and the cen
 from __future__ import annotations
 
 import os
+from dataclasses import replace
 from pathlib import Path
 
 import cv2
@@ -17,6 +18,16 @@ from argen import bop
 from argen.errors import ArgenError
 from argen.features import BOX_EDGES, palette, project
 from argen.h5 import FrameLabels, LabelFile
+from argen.label import (
+    LabelConfig,
+    Labeller,
+    dataset_frames,
+    dataset_pixel_centres,
+    default_max_depth,
+    load_label_objects,
+    resolve_models,
+)
+
 
 def splat(frame: FrameLabels) -> np.ndarray:
     """(H,W,3) uint8 image of the points' colours at their pixels (3x3 dots), black elsewhere."""
@@ -81,8 +92,6 @@ def preview_file(path: str | os.PathLike, index: int, out: str | os.PathLike) ->
 def preview_bop(dataset: str | os.PathLike, split: str, index: int, out: str | os.PathLike,
                 models: str | os.PathLike | None = None, cfg=None) -> FrameLabels:
     """Label frame ``index`` (in split order) of a BOP dataset on the fly and write its preview to ``out``."""
-    from argen.label import (LabelConfig, Labeller, dataset_frames, dataset_pixel_centres, default_max_depth,
-                             load_label_objects, resolve_models)
 
     root = Path(dataset)
     scenes, frames = dataset_frames(root, split)
@@ -91,7 +100,6 @@ def preview_bop(dataset: str | os.PathLike, split: str, index: int, out: str | o
     sid, im = frames[index]
     scene = scenes[sid]
     cfg = cfg or LabelConfig()
-    from dataclasses import replace
 
     if cfg.max_depth is None:
         cfg = replace(cfg, max_depth=default_max_depth(root))

@@ -16,7 +16,7 @@ import open3d as o3d
 
 from argen import bop
 from argen.features import backproject
-from argen.objects import ObjectModel, surface_scene
+from argen.models.objects import ObjectModel, surface_scene
 
 #: Distance bins of the benchmark, metres (the camera-to-point depth z).
 DISTANCE_BINS = ((0.6, 0.8), (0.8, 0.95), (0.95, 1.1))

@@ -16,9 +16,9 @@ import tempfile
 import time
 from pathlib import Path
 
-from argen.capture import CaptureRequest, run_capture
 from argen.config import load_template
-from argen.objects import load_objects
+from argen.models.objects import load_objects
+from argen.sim.capture import CaptureRequest, run_capture
 
 
 def main() -> None:

@@ -33,7 +33,7 @@ def make_data(tmp: Path) -> Path:
     """A tiny labelled capture-sim dataset (3 frames, built-in objects, no noise)."""
     from typer.testing import CliRunner
 
-    from argen.cli import app
+    from argen.cli.app import app
     from argen.label import LabelConfig, LabelRequest, run_label
 
     r = CliRunner().invoke(app, ["capture-sim", "--frames", "3", "--noise", "none", "--out", str(tmp / "ds"),
@@ -47,7 +47,7 @@ def make_data(tmp: Path) -> Path:
 
 def network_times(ckpt, frames: list, device: str) -> dict[str, float]:
     """Median seconds of "sampling" and "network" over frames (first frame is a warm-up)."""
-    from detector.evaluate import network_predictor
+    from detector.infer import network_predictor
 
     pred = network_predictor(ckpt, seed=0, device=device)
     pred(frames[0])
@@ -57,7 +57,7 @@ def network_times(ckpt, frames: list, device: str) -> dict[str, float]:
 
 def pose_times(frames: list, objects, num_points: int) -> dict[str, float]:
     """Median seconds of voting, Kabsch and ICP per frame on ground-truth predictions, and detections per frame."""
-    from detector.evaluate import estimate, oracle_predictor
+    from detector.infer import estimate, oracle_predictor
     from detector.pose import PoseConfig
 
     pred = oracle_predictor(num_points=num_points, seed=0)
@@ -77,8 +77,7 @@ def pose_times(frames: list, objects, num_points: int) -> dict[str, float]:
 def two_stage_times(ck, frames: list, device: str) -> dict[str, float]:
     """A two-stage checkpoint end to end on real predictions: median seconds per stage and of the whole frame
     (sampling, network, voting, stage 2, ICP with the model's own pose settings), and detections per frame."""
-    from detector.evaluate import estimate, network_predictor
-    from detector.predict import checkpoint_objects, checkpoint_pose_config, checkpoint_poser
+    from detector.infer import checkpoint_objects, checkpoint_pose_config, checkpoint_poser, estimate, network_predictor
 
     objects = checkpoint_objects(ck)[0]
     cfg = checkpoint_pose_config(ck, None, 0.02, True)

@@ -20,15 +20,15 @@ import tempfile
 import time
 from pathlib import Path
 
-from argen.label import LabelConfig, LabelRequest, Labeller, dataset_frames, load_label_objects, run_label
+from argen.label import LabelConfig, Labeller, LabelRequest, dataset_frames, load_label_objects, run_label
 
 LM = Path(__file__).resolve().parents[2] / "shared/data/lm/models"
 
 
 def make_dataset(out: Path, frames: int, models: Path | None) -> None:
-    from argen.capture import CaptureRequest, run_capture
     from argen.config import load_template
-    from argen.objects import load_objects
+    from argen.models.objects import load_objects
+    from argen.sim.capture import CaptureRequest, run_capture
 
     cfg = load_template("linemod")
     sel = ["ape", "can", "cat", "driller", "duck"] if models else None

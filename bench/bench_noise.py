@@ -30,11 +30,11 @@ from pathlib import Path
 
 import numpy as np
 
-from argen.capture import CaptureRequest, run_capture
-from argen.cli import parse_sets
+from argen.cli.common import parse_sets
 from argen.config import load_template, override
-from argen.objects import load_objects
+from argen.models.objects import load_objects
 from argen.realism import ANGLE_BINS, DISTANCE_BINS, dataset_errors, depth_steps, summary
+from argen.sim.capture import CaptureRequest, run_capture
 
 REPO = Path(__file__).resolve().parents[1]
 LM_MODELS = REPO.parent / "shared" / "data" / "lm" / "models"

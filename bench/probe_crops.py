@@ -11,11 +11,11 @@ import torch
 
 from argen.h5 import LabelFile
 from detector.checkpoint import read_checkpoint
+from detector.cropnet import build_pose_net
 from detector.crops import CropConfig
 from detector.infer import CropPoseConfig, crop_predictions, pose_from_crop
 from detector.metrics import pose_error
 from detector.pose import ObjectInfo
-from detector.cropnet import build_pose_net
 
 
 def main() -> None:

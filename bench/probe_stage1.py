@@ -11,7 +11,7 @@ import torch
 
 from argen.h5 import LabelFile
 from detector.checkpoint import Checkpoint, build_model, read_checkpoint
-from detector.evaluate import network_predictor
+from detector.infer import network_predictor
 from detector.pose import ObjectInfo, PoseConfig, detect
 
 

@@ -12,7 +12,6 @@ Version 1 holds one network (the paper's single-shot PoseNet). Version 2 holds t
 
 from __future__ import annotations
 
-import os
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -20,7 +19,9 @@ from typing import Any
 import torch
 
 from detector.cropnet import build_pose_net
-from detector.errors import DetectorError
+from argen.fileio import atomic_path
+from detector.errors import DetectorError, argen_errors
+from detector.model import ModelConfig, PoseNet
 
 FORMAT = "detector-checkpoint"
 VERSION = 1
@@ -54,14 +55,10 @@ class Checkpoint:
 
 
 def atomic_torch_save(obj: Any, path: Path) -> None:
-    """``torch.save`` to a temporary file beside ``path``, then rename: readers never see half a file."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    try:
+    """``torch.save`` to a temporary file beside ``path``, then rename (:func:`argen.fileio.atomic_path`, the one
+    atomic-write helper): readers never see half a file; a full disk is a one-line DetectorError."""
+    with argen_errors(), atomic_path(path) as tmp:
         torch.save(obj, tmp)
-        os.replace(tmp, path)
-    finally:
-        tmp.unlink(missing_ok=True)
 
 
 def save_checkpoint(path: str | Path, *, model: torch.nn.Module, model_config, class_ids: list[int], objects: dict,
@@ -106,7 +103,6 @@ def read_checkpoint(path: str | Path, device: str | torch.device = "cpu") -> dic
 
 def build_model(payload: dict, path: Path, device: str | torch.device):
     """The PoseNet of a checkpoint dict with its weights loaded; a mismatch is a :class:`DetectorError`."""
-    from detector.model import ModelConfig, PoseNet
 
     try:
         cfg = ModelConfig.from_dict(payload["model_config"])

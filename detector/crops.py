@@ -17,7 +17,6 @@ from dataclasses import dataclass
 import numpy as np
 
 
-
 @dataclass
 class CropConfig:
     """How crops are cut and sampled.

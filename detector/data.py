@@ -19,8 +19,10 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from argen.h5 import LabelFile
 from detector.crops import training_crop
 from detector.errors import DetectorError, argen_errors
+from detector.ops import precompute_indices
 
 #: Colour normalisation of the network input; the label file stores colour in [0, 1].
 NORMALISATION: dict[str, float] = {"rgb_mean": 0.5, "rgb_std": 0.25}
@@ -102,8 +104,6 @@ def sampling_indices(xyz: np.ndarray, specs: list[tuple[int, float, int]]) -> di
 
     xyz: (N, 3) float32 metres; specs: the model config's ``sampling_specs()``.
     """
-    from detector.ops import precompute_indices
-
     out = precompute_indices(np.ascontiguousarray(xyz, dtype=np.float32), specs)
     return {k: torch.from_numpy(np.ascontiguousarray(v)) for k, v in out.items()}
 
@@ -113,7 +113,6 @@ def sampling_indices(xyz: np.ndarray, specs: list[tuple[int, float, int]]) -> di
 
 def open_label_file(path: str | Path):
     """Open a label file through :mod:`argen.h5`; a missing or malformed file is a :class:`DetectorError`."""
-    from argen.h5 import LabelFile
 
     with argen_errors():
         return LabelFile(Path(path))

@@ -1,128 +1,24 @@
-"""`detector eval`: run a predictor over a label file, poses through :mod:`detector.pose`, score and report.
-
-A predictor maps one frame (anything with ``features`` (N,9); the evaluation passes ``argen.h5.FrameLabels``)
-to :class:`Predictions`. :func:`oracle_predictor` uses the file's ground-truth labels instead of a network
-(checks the whole pose stage); :func:`network_predictor` runs a checkpoint's PoseNet on CPU or GPU.
+"""`detector eval`: scoring only. Runs a predictor (:mod:`detector.infer`) over a label file, matches the poses
+to the ground truth (:mod:`detector.metrics`: ADD, ADD-S, F1) and writes the report (:mod:`detector.report`).
 """
 
 from __future__ import annotations
 
 import time
-from collections.abc import Callable
-from dataclasses import asdict, dataclass, field, replace
+from dataclasses import asdict, replace
 from pathlib import Path
 
 import numpy as np
+from tqdm import tqdm
 
+from argen.h5 import LabelFile
+from detector.infer import Predictor, estimate
 from detector.metrics import THRESHOLDS, accuracy, accuracy_curve, match_frame, pose_error, prf
-from detector.pose import Detection, ObjectInfo, PoseConfig, detect, icp_counts, nms, refine
+from detector.pose import Detection, ObjectInfo, PoseConfig, icp_counts
 from detector.report import STAGES, bop_csv_name, bop_row, default_dataset_name, write_report
 
 #: The default method name of the BOP results file (``METHOD_DATASET-SPLIT.csv``).
 METHOD = "argen"
-
-
-@dataclass
-class Predictions:
-    """Per-point predictions for one frame (K points).
-
-    xyz: (K,3) float metres; class_probs: (K,C+1) float, column 0 background, column c object ``class_ids[c-1]``;
-    class_ids: C object ids; control_points: (K,9,3) float metres (point + offsets); confidence: (K,) in [0,1];
-    point_index: (K,) int64 input row of each point; timings: seconds spent, e.g. {"sampling", "network"}.
-    """
-
-    xyz: np.ndarray
-    class_probs: np.ndarray
-    class_ids: list[int]
-    control_points: np.ndarray
-    confidence: np.ndarray
-    point_index: np.ndarray
-    timings: dict = field(default_factory=dict)
-
-    @property
-    def obj_ids(self) -> np.ndarray:
-        """(K,) int64 object id of each point's most likely class, 0 = background."""
-        lut = np.concatenate([[0], np.asarray(self.class_ids, np.int64)])
-        return lut[np.argmax(self.class_probs, axis=1)]
-
-
-Predictor = Callable[[object], Predictions]
-
-
-def oracle_predictor(num_points: int | None = None, seed: int = 0) -> Predictor:
-    """A predictor that returns the frame's ground truth: class = semantic label, control points = the per-point
-    labels, confidence 1. num_points: sample that many rows per frame (seeded) like the network; None = all."""
-
-    def predict(frame) -> Predictions:
-        n = len(frame.features)
-        rows = np.arange(n) if num_points is None or num_points >= n else \
-            np.sort(np.random.default_rng([seed, frame.scene_id, frame.im_id]).choice(n, num_points, replace=False))
-        ids = sorted(set(np.unique(frame.semantic).tolist()) - {0})
-        cls = np.searchsorted(ids, frame.semantic[rows]) + 1
-        cls[frame.semantic[rows] == 0] = 0
-        probs = np.eye(len(ids) + 1, dtype=np.float32)[cls]
-        return Predictions(frame.features[rows, :3].astype(np.float64), probs, ids,
-                           frame.control_points[rows].astype(np.float64), np.ones(len(rows)), rows.astype(np.int64))
-
-    return predict
-
-
-def network_predictor(checkpoint, seed: int = 0, device: str | None = None) -> Predictor:
-    """A predictor running ``checkpoint.model`` (a :class:`detector.checkpoint.Checkpoint`) on one frame.
-
-    Sampling and neighbour indices as in training (``detector.data.inference_batch``); times "sampling" and
-    "network" (synchronised on GPU). On a GPU the neighbour indices are computed by the model (inside "network").
-    """
-    import torch
-
-    from detector.data import inference_batch
-
-    model = checkpoint.model
-    dev = torch.device(device) if device else next(model.parameters()).device
-    model.to(dev).eval()
-
-    def predict(frame) -> Predictions:
-        t0 = time.perf_counter()
-        batch = inference_batch(frame.features, checkpoint.model_config, checkpoint.num_points, seed,
-                                normalisation=checkpoint.normalisation or None, precompute=dev.type == "cpu")
-        feats = batch.pop("features").to(dev)
-        rows = batch.pop("point_index").numpy()
-        indices = {k: v.to(dev) for k, v in batch.items()}
-        t1 = time.perf_counter()
-        with torch.no_grad():
-            out = model(feats, indices or None)
-            if dev.type == "cuda":
-                torch.cuda.synchronize(dev)
-        t2 = time.perf_counter()
-        kp = out["keypoints"][0].cpu().numpy()
-        xyz = np.asarray(frame.features, np.float64)[rows[kp], :3]  # metres, exactly the input points
-        offsets = out["offsets"][0].double().cpu().numpy()
-        return Predictions(xyz, torch.softmax(out["logits"][0].float(), -1).cpu().numpy(), list(checkpoint.class_ids),
-                           xyz[:, None, :] + offsets, out["confidence"][0].double().cpu().numpy(), rows[kp],
-                           {"sampling": t1 - t0, "network": t2 - t1})
-
-    return predict
-
-
-def estimate(preds: Predictions, objects: ObjectInfo, cfg: PoseConfig, timings: dict | None = None,
-             cloud: np.ndarray | None = None, poser=None, features: np.ndarray | None = None
-             ) -> tuple[list[Detection], list[Detection] | None]:
-    """Detections of one frame without and (when ``cfg.icp``) with ICP refinement; stage seconds into ``timings``.
-
-    cloud: (M,3) metres, the frame's full point cloud, for ICP (see :func:`detector.pose.refine`); None: the
-    predicted points only. poser: a two-stage model's stage 2 (:class:`detector.infer.CropPoser`), called with
-    the stage-1 detections and ``features`` (M,9), the frame's points whose xyz is ``cloud``; its detections are
-    suppressed again (two crops may settle on one object). ``cfg.min_score`` then drops the weak refined
-    detections (by their score after ICP, recomputed there for a two-stage detection) and
-    ``cfg.min_score_unrefined`` the weak unrefined ones.
-    """
-    dets = detect(preds.xyz, preds.obj_ids, preds.confidence, preds.control_points, objects, cfg, timings)
-    if poser is not None:
-        dets = nms(poser(dets, features, timings), objects.diameters, cfg.nms_fraction)
-    refined = refine(dets, preds.xyz, objects, cfg, timings, cloud) if cfg.icp else None
-    lo = cfg.min_score if cfg.min_score_unrefined is None else cfg.min_score_unrefined
-    return ([d for d in dets if d.score >= lo],
-            [d for d in refined if d.score >= cfg.min_score] if refined is not None else None)
 
 
 def error_matrix(dets: list[Detection], frame, table) -> np.ndarray:
@@ -156,8 +52,6 @@ def evaluate(predictor: Predictor, label_path: str | Path, out_dir: str | Path, 
     F1 at 15 %, mean ms per stage, fps, and with ICP how many detections had their ICP pose accepted, rejected
     (it did not fit better, so the unrefined pose was kept) or skipped (too few points): "icp_refinement").
     """
-    from argen.h5 import LabelFile
-
     cfg = replace(cfg or PoseConfig(), icp=icp)
     keys = ("noicp", "icp") if icp else ("noicp",)
     gt_rows, bop_rows, counts, times = [], [], {}, []
@@ -170,7 +64,6 @@ def evaluate(predictor: Predictor, label_path: str | Path, out_dir: str | Path, 
         idx = range(lf.num_frames) if frames is None else frames
         it = idx
         if progress:
-            from tqdm import tqdm
             it = tqdm(idx, desc="eval", unit="frame")
         for i in it:
             frame = lf.frame(i)

@@ -1,21 +1,41 @@
-"""Inference, stage 2: poses of detected objects from crops of the frame around their stage-1 centres.
+"""Inference: a checkpoint (or the ground truth, as an oracle) -> per-point predictions -> poses.
 
-For each (object, centre) the crop network (:mod:`detector.cropnet`) labels the crop's points as the object's
-or not and regresses their model coordinates; RANSAC over 3-point Kabsch hypotheses (:func:`detector.pose.
-ransac_kabsch`) turns the foreground correspondences into a pose. Optionally the crop is cut again around the
-new centre and the pose recomputed (``recentre``), which forgives a larger stage-1 centre error.
+A predictor maps one frame (anything with ``features`` (N,9); evaluation passes ``argen.h5.FrameLabels``) to
+:class:`Predictions`: :func:`network_predictor` runs a checkpoint's network on CPU or GPU, :func:`oracle_predictor`
+returns the frame's ground-truth labels (checks the pose stage alone). :func:`estimate` turns predictions into
+detections with :mod:`detector.pose` (voting, Kabsch, ICP) and, for a two-stage model, :class:`CropPoser`:
+stage 2, which for each (object, centre) runs the crop network (:mod:`detector.cropnet`) to label the crop's
+points as the object's or not and regress their model coordinates; RANSAC over 3-point Kabsch hypotheses
+(:func:`detector.pose.ransac_kabsch`) turns the foreground correspondences into a pose. Optionally the crop is cut
+again around the new centre and the pose recomputed (``recentre``), which forgives a larger stage-1 centre error.
+The ``checkpoint_*`` helpers read a checkpoint's objects, pose settings and stage 2. ``detector eval`` and
+``detector predict`` both infer through this module.
 """
 
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, replace
+from collections.abc import Callable
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 import torch
 
 from detector.crops import CropConfig, ball_rows, crop_input, sample_crop
-from detector.pose import Detection, fit_residuals, fit_rms, ransac_kabsch, surface_support
+from detector.data import inference_batch
+from detector.errors import DetectorError
+from detector.pose import (
+    Detection,
+    ObjectInfo,
+    PoseConfig,
+    detect,
+    fit_residuals,
+    fit_rms,
+    nms,
+    ransac_kabsch,
+    refine,
+    surface_support,
+)
 
 
 @dataclass
@@ -159,3 +179,149 @@ class CropPoser:
         if timings is not None:
             timings["stage2"] = timings.get("stage2", 0.0) + time.perf_counter() - t0
         return out
+
+
+# ------------------------------------------------------------------ predictors: a frame -> per-point predictions
+
+
+@dataclass
+class Predictions:
+    """Per-point predictions for one frame (K points).
+
+    xyz: (K,3) float metres; class_probs: (K,C+1) float, column 0 background, column c object ``class_ids[c-1]``;
+    class_ids: C object ids; control_points: (K,9,3) float metres (point + offsets); confidence: (K,) in [0,1];
+    point_index: (K,) int64 input row of each point; timings: seconds spent, e.g. {"sampling", "network"}.
+    """
+
+    xyz: np.ndarray
+    class_probs: np.ndarray
+    class_ids: list[int]
+    control_points: np.ndarray
+    confidence: np.ndarray
+    point_index: np.ndarray
+    timings: dict = field(default_factory=dict)
+
+    @property
+    def obj_ids(self) -> np.ndarray:
+        """(K,) int64 object id of each point's most likely class, 0 = background."""
+        lut = np.concatenate([[0], np.asarray(self.class_ids, np.int64)])
+        return lut[np.argmax(self.class_probs, axis=1)]
+
+
+Predictor = Callable[[object], Predictions]
+
+
+def oracle_predictor(num_points: int | None = None, seed: int = 0) -> Predictor:
+    """A predictor that returns the frame's ground truth: class = semantic label, control points = the per-point
+    labels, confidence 1. num_points: sample that many rows per frame (seeded) like the network; None = all."""
+
+    def predict(frame) -> Predictions:
+        n = len(frame.features)
+        rows = np.arange(n) if num_points is None or num_points >= n else \
+            np.sort(np.random.default_rng([seed, frame.scene_id, frame.im_id]).choice(n, num_points, replace=False))
+        ids = sorted(set(np.unique(frame.semantic).tolist()) - {0})
+        cls = np.searchsorted(ids, frame.semantic[rows]) + 1
+        cls[frame.semantic[rows] == 0] = 0
+        probs = np.eye(len(ids) + 1, dtype=np.float32)[cls]
+        return Predictions(frame.features[rows, :3].astype(np.float64), probs, ids,
+                           frame.control_points[rows].astype(np.float64), np.ones(len(rows)), rows.astype(np.int64))
+
+    return predict
+
+
+def network_predictor(checkpoint, seed: int = 0, device: str | None = None) -> Predictor:
+    """A predictor running ``checkpoint.model`` (a :class:`detector.checkpoint.Checkpoint`) on one frame.
+
+    Sampling and neighbour indices as in training (``detector.data.inference_batch``); times "sampling" and
+    "network" (synchronised on GPU). On a GPU the neighbour indices are computed by the model (inside "network").
+    """
+    model = checkpoint.model
+    dev = torch.device(device) if device else next(model.parameters()).device
+    model.to(dev).eval()
+
+    def predict(frame) -> Predictions:
+        t0 = time.perf_counter()
+        batch = inference_batch(frame.features, checkpoint.model_config, checkpoint.num_points, seed,
+                                normalisation=checkpoint.normalisation or None, precompute=dev.type == "cpu")
+        feats = batch.pop("features").to(dev)
+        rows = batch.pop("point_index").numpy()
+        indices = {k: v.to(dev) for k, v in batch.items()}
+        t1 = time.perf_counter()
+        with torch.no_grad():
+            out = model(feats, indices or None)
+            if dev.type == "cuda":
+                torch.cuda.synchronize(dev)
+        t2 = time.perf_counter()
+        kp = out["keypoints"][0].cpu().numpy()
+        xyz = np.asarray(frame.features, np.float64)[rows[kp], :3]  # metres, exactly the input points
+        offsets = out["offsets"][0].double().cpu().numpy()
+        return Predictions(xyz, torch.softmax(out["logits"][0].float(), -1).cpu().numpy(), list(checkpoint.class_ids),
+                           xyz[:, None, :] + offsets, out["confidence"][0].double().cpu().numpy(), rows[kp],
+                           {"sampling": t1 - t0, "network": t2 - t1})
+
+    return predict
+
+
+def estimate(preds: Predictions, objects: ObjectInfo, cfg: PoseConfig, timings: dict | None = None,
+             cloud: np.ndarray | None = None, poser=None, features: np.ndarray | None = None
+             ) -> tuple[list[Detection], list[Detection] | None]:
+    """Detections of one frame without and (when ``cfg.icp``) with ICP refinement; stage seconds into ``timings``.
+
+    cloud: (M,3) metres, the frame's full point cloud, for ICP (see :func:`detector.pose.refine`); None: the
+    predicted points only. poser: a two-stage model's stage 2 (:class:`CropPoser`), called with
+    the stage-1 detections and ``features`` (M,9), the frame's points whose xyz is ``cloud``; its detections are
+    suppressed again (two crops may settle on one object). ``cfg.min_score`` then drops the weak refined
+    detections (by their score after ICP, recomputed there for a two-stage detection) and
+    ``cfg.min_score_unrefined`` the weak unrefined ones.
+    """
+    dets = detect(preds.xyz, preds.obj_ids, preds.confidence, preds.control_points, objects, cfg, timings)
+    if poser is not None:
+        dets = nms(poser(dets, features, timings), objects.diameters, cfg.nms_fraction)
+    refined = refine(dets, preds.xyz, objects, cfg, timings, cloud) if cfg.icp else None
+    lo = cfg.min_score if cfg.min_score_unrefined is None else cfg.min_score_unrefined
+    return ([d for d in dets if d.score >= lo],
+            [d for d in refined if d.score >= cfg.min_score] if refined is not None else None)
+
+
+# ------------------------------------------------------------------------- a checkpoint's pose stage settings
+
+
+def checkpoint_objects(ckpt) -> tuple[ObjectInfo, dict[int, str]]:
+    """The pose-stage object info and names of a checkpoint's object table."""
+    o = ckpt.objects
+    return ObjectInfo.from_table(o), {int(i): str(n) for i, n in zip(o["ids"], o["names"])}
+
+
+def pose_config(tau: float, cell: float, icp: bool, base: PoseConfig | None = None) -> PoseConfig:
+    """A PoseConfig from CLI options, checked (metres); ``base`` gives the other settings."""
+    if not 0 <= tau <= 1:
+        raise DetectorError(f"--tau must be in [0, 1], got {tau}")
+    if not 0 < cell < 1:
+        raise DetectorError(f"--cell is metres and must be in (0, 1), got {cell}")
+    return replace(base or PoseConfig(), tau=tau, cell=cell, icp=icp)
+
+
+def checkpoint_pose_config(ckpt, tau: float | None, cell: float, icp: bool, min_score: float | None = None
+                           ) -> PoseConfig:
+    """The pose settings of a checkpoint (those stored with a two-stage model, e.g. its thresholds), with the CLI's
+    options over them; ``tau`` / ``min_score`` None keep the model's (the paper's tau 0.8 and no score threshold
+    for a model that stores none)."""
+    try:
+        base = replace(PoseConfig(), **ckpt.pose_config)
+    except TypeError as exc:
+        raise DetectorError(f"the checkpoint's pose settings are not understood ({exc})") from None
+    if min_score is not None:
+        if not 0 <= min_score <= 1:
+            raise DetectorError(f"--min-score must be in [0, 1], got {min_score}")
+        base = replace(base, min_score=min_score)
+    return pose_config(base.tau if tau is None else tau, cell, icp, base)
+
+
+def checkpoint_poser(ckpt, objects: ObjectInfo, device: str = "cpu", seed: int = 0):
+    """A two-stage checkpoint's stage 2 (:class:`CropPoser`), or None for a single network."""
+    if ckpt.pose_net is None:
+        return None
+    p = ckpt.pose
+    support = float(ckpt.pose_config.get("support_distance", PoseConfig.support_distance))
+    return CropPoser(ckpt.pose_net, p["class_ids"], objects, CropConfig.from_dict(p["crop_config"]),
+                     p["normalisation"], CropPoseConfig(**(p.get("infer_config") or {})), device, seed, support)

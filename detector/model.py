@@ -43,6 +43,7 @@ from dataclasses import dataclass
 import torch
 from torch import nn
 
+from detector.config import NETWORK_PRESETS, load_preset
 from detector.errors import DetectorError
 from detector.ops import compute_indices_torch, gather, group, three_interpolate
 
@@ -100,23 +101,12 @@ class ModelConfig:
         return cls(**data)
 
 
-PRESETS: dict[str, dict] = {
-    "paper": {},
-    "cpu": {
-        "npoints": [1024, 256, 128, 64, 32],
-        "nsamples": [32, 16, 16, 16, 16],
-        "sa_mlps": [[16, 16, 32], [32, 32, 64], [64, 64, 128], [96, 96, 192], [128, 128, 256]],
-        "fp_mlps": [[256, 256], [192, 192], [128, 128], [128, 128]],
-        "head_channels": 64,
-    },
-}
-
-
 def preset(name: str) -> ModelConfig:
-    """The ModelConfig of a named preset: ``paper`` or ``cpu`` (see the module docstring); KeyError otherwise."""
-    if name not in PRESETS:
-        raise KeyError(f"unknown model preset '{name}' (available: {', '.join(PRESETS)})")
-    return ModelConfig(**PRESETS[name])
+    """The ModelConfig of a named preset: ``paper`` or ``cpu`` (``detector/presets/NAME.yaml``'s ``model``
+    section over the defaults; see the module docstring); KeyError otherwise."""
+    if name not in NETWORK_PRESETS:
+        raise KeyError(f"unknown model preset '{name}' (available: {', '.join(NETWORK_PRESETS)})")
+    return ModelConfig(**(load_preset(name)["model"] or {}))
 
 
 def norm_layer(kind: str, channels: int, dims: int) -> nn.Module:

@@ -21,8 +21,10 @@ Levels: level 0 is the N input points; ``specs[l] = (npoint, radius, nsample)`` 
 
 from __future__ import annotations
 
+import fpsample
 import numpy as np
 import torch
+from pykdtree.kdtree import KDTree
 
 from detector.errors import DetectorError
 
@@ -53,8 +55,6 @@ def fps_numpy(xyz: np.ndarray, npoint: int) -> np.ndarray:
 
     xyz: (N, 3) float32 metres. Returns (npoint,) int64 indices in sampling order.
     """
-    import fpsample
-
     if npoint == len(xyz) == 1:
         return np.zeros(1, np.int64)
     return fpsample.fps_sampling(np.ascontiguousarray(xyz, dtype=np.float32), npoint, start_idx=0).astype(np.int64)
@@ -65,8 +65,6 @@ def ball_query_numpy(xyz: np.ndarray, centres: np.ndarray, radius: float, nsampl
 
     xyz: (N, 3) float32 metres; centres: (S, 3) float32 metres. Returns (S, nsample) int64 indices into xyz.
     """
-    from pykdtree.kdtree import KDTree
-
     k = min(nsample, len(xyz))
     dist, idx = KDTree(np.ascontiguousarray(xyz, np.float32)).query(
         np.ascontiguousarray(centres, np.float32), k=k, distance_upper_bound=radius)
@@ -93,8 +91,6 @@ def three_nn_numpy(unknown: np.ndarray, known: np.ndarray) -> tuple[np.ndarray, 
     unknown: (n, 3) float32 metres; known: (m, 3) float32 metres, m >= 1.
     Returns idx (n, 3) int64 into known (repeating the last neighbour when m < 3), w (n, 3) float32.
     """
-    from pykdtree.kdtree import KDTree
-
     k = min(3, len(known))
     dist, idx = KDTree(np.ascontiguousarray(known, np.float32)).query(np.ascontiguousarray(unknown, np.float32), k=k)
     dist, idx = dist.reshape(len(unknown), k), idx.reshape(len(unknown), k).astype(np.int64)

@@ -21,6 +21,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 import scipy.sparse
 import scipy.sparse.csgraph
+from scipy.spatial import cKDTree
 
 # the 27 offsets of a voxel's 26-neighbourhood (and itself)
 _NEIGHBOURS = np.stack(np.meshgrid(*[np.arange(-1, 2)] * 3, indexing="ij"), -1).reshape(-1, 3)
@@ -236,6 +237,7 @@ def nms(detections: list[Detection], diameters: dict[int, float], fraction: floa
 
 def _model_cloud(model_points: np.ndarray):
     """An open3d cloud of model points (metres) with estimated normals (their sign does not matter)."""
+    # lazy: open3d loads in about a second; only ICP and the fit measure need it
     import open3d as o3d
 
     pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(model_points, np.float64)))
@@ -254,6 +256,7 @@ def icp_refine(scene_points: np.ndarray, model_points: np.ndarray, R: np.ndarray
     :func:`_model_cloud` of ``model_points``; kernel: Tukey robust-loss scale, metres (None: plain least squares).
     Returns the refined R (3,3), t (3,) float64.
     """
+    # lazy: open3d, as in _model_cloud
     import open3d as o3d
 
     reg = o3d.pipelines.registration
@@ -343,8 +346,6 @@ class ObjectInfo:
         """(cKDTree of the model points, (P,3) their unit normals) of ``obj_id``, cached: the fit measure's model."""
         key = ("surface", obj_id)
         if key not in self._clouds:
-            from scipy.spatial import cKDTree
-
             self._clouds[key] = (cKDTree(np.asarray(self.model_points[obj_id], np.float64)),
                                  np.asarray(self.cloud(obj_id).normals))
         return self._clouds[key]
@@ -396,8 +397,6 @@ def nearest_owner(xyz: np.ndarray, cloud: np.ndarray, radius: float, k: int = 1)
     xyz: (K,3) metres, the predicted points; cloud: (M,3) metres; radius: metres, farther predicted points are
     not neighbours. Returns (M,) int64 row of ``xyz`` (k = 1) or (M,k) rows, -1 for none.
     """
-    from scipy.spatial import cKDTree
-
     dist, owner = cKDTree(np.asarray(xyz, np.float64)).query(np.asarray(cloud, np.float64), k=k,
                                                             distance_upper_bound=radius)
     return np.where(np.isfinite(dist), owner, -1).astype(np.int64)

@@ -11,7 +11,7 @@ from __future__ import annotations
 import json
 import re
 import time
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from pathlib import Path
 from types import SimpleNamespace
 
@@ -21,6 +21,7 @@ import numpy as np
 from argen import bop
 from argen.features import BOX_EDGES, frame_points, palette, project
 from detector.errors import DetectorError, argen_errors
+from detector.infer import estimate
 from detector.pose import Detection, ObjectInfo, PoseConfig
 
 MAX_POINTS = 30000  # as argen label's default max_points
@@ -102,6 +103,7 @@ def view_camera(xyz: np.ndarray, size: tuple[int, int] = PLY_VIEW) -> np.ndarray
 def load_ply(path: Path, max_points: int = MAX_POINTS, seed: int = 0) -> PointInput:
     """A PLY point cloud in camera coordinates, metres (OpenCV axes); colours and normals when present,
     else normals estimated (open3d) and turned toward the camera."""
+    # lazy: open3d loads in about a second; only PLY input needs it
     import open3d as o3d
 
     pc = o3d.io.read_point_cloud(str(path))
@@ -199,10 +201,8 @@ def detection_json(d: Detection, name: str) -> dict:
 
 def predict(predictor, inp: PointInput, objects: ObjectInfo, out_dir: Path, cfg: PoseConfig | None = None,
             names: dict[int, str] | None = None, poser=None) -> dict:
-    """Run ``predictor`` (see :mod:`detector.evaluate`) and the pose stage (with a two-stage model's ``poser``)
+    """Run ``predictor`` (see :mod:`detector.infer`) and the pose stage (with a two-stage model's ``poser``)
     on ``inp``; write poses.json and poses.png into ``out_dir``. Returns the JSON content."""
-    from detector.evaluate import estimate
-
     cfg = cfg or PoseConfig()
     t0 = time.perf_counter()
     preds = predictor(SimpleNamespace(features=inp.features, scene_id=0, im_id=0))
@@ -223,47 +223,3 @@ def predict(predictor, inp: PointInput, objects: ObjectInfo, out_dir: Path, cfg:
     if not cv2.imwrite(str(out_dir / "poses.png"), cv2.cvtColor(img, cv2.COLOR_RGB2BGR)):
         raise DetectorError(f"cannot write {out_dir / 'poses.png'}")
     return out
-
-
-def checkpoint_objects(ckpt) -> tuple[ObjectInfo, dict[int, str]]:
-    """The pose-stage object info and names of a checkpoint's object table."""
-    o = ckpt.objects
-    return ObjectInfo.from_table(o), {int(i): str(n) for i, n in zip(o["ids"], o["names"])}
-
-
-def pose_config(tau: float, cell: float, icp: bool, base: PoseConfig | None = None) -> PoseConfig:
-    """A PoseConfig from CLI options, checked (metres); ``base`` gives the other settings."""
-    if not 0 <= tau <= 1:
-        raise DetectorError(f"--tau must be in [0, 1], got {tau}")
-    if not 0 < cell < 1:
-        raise DetectorError(f"--cell is metres and must be in (0, 1), got {cell}")
-    return replace(base or PoseConfig(), tau=tau, cell=cell, icp=icp)
-
-
-def checkpoint_pose_config(ckpt, tau: float | None, cell: float, icp: bool, min_score: float | None = None
-                           ) -> PoseConfig:
-    """The pose settings of a checkpoint (those stored with a two-stage model, e.g. its thresholds), with the CLI's
-    options over them; ``tau`` / ``min_score`` None keep the model's (the paper's tau 0.8 and no score threshold
-    for a model that stores none)."""
-    try:
-        base = replace(PoseConfig(), **ckpt.pose_config)
-    except TypeError as exc:
-        raise DetectorError(f"the checkpoint's pose settings are not understood ({exc})") from None
-    if min_score is not None:
-        if not 0 <= min_score <= 1:
-            raise DetectorError(f"--min-score must be in [0, 1], got {min_score}")
-        base = replace(base, min_score=min_score)
-    return pose_config(base.tau if tau is None else tau, cell, icp, base)
-
-
-def checkpoint_poser(ckpt, objects: ObjectInfo, device: str = "cpu", seed: int = 0):
-    """A two-stage checkpoint's stage 2 (:class:`detector.infer.CropPoser`), or None for a single network."""
-    if ckpt.pose_net is None:
-        return None
-    from detector.crops import CropConfig
-    from detector.infer import CropPoseConfig, CropPoser
-
-    p = ckpt.pose
-    support = float(ckpt.pose_config.get("support_distance", PoseConfig.support_distance))
-    return CropPoser(ckpt.pose_net, p["class_ids"], objects, CropConfig.from_dict(p["crop_config"]),
-                     p["normalisation"], CropPoseConfig(**(p.get("infer_config") or {})), device, seed, support)

@@ -13,6 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
+from detector.errors import DetectorError
 from detector.metrics import THRESHOLDS
 
 BOP_FIELDS = ("scene_id", "im_id", "obj_id", "score", "R", "t", "time")
@@ -34,8 +35,6 @@ def bop_csv_name(method: str, dataset: str, split: str) -> str:
     name such as ``test`` or ``train_pbr`` (written as ``train-pbr``: split ``train``, split type ``pbr``).
     A name part the toolkit could not parse back is a DetectorError.
     """
-    from detector.errors import DetectorError
-
     parts = split.split("_")
     for what, v in [("method", method), ("dataset name", dataset)] + [("split", x) for x in parts]:
         if not v or not v.isalnum():
@@ -142,10 +141,11 @@ def markdown(summary: dict) -> str:
 
 def plot_curve(curves: dict[str, tuple[np.ndarray, np.ndarray]], path: Path) -> Path:
     """Accuracy (0..1) against threshold (fraction of the diameter) per named curve, as a PNG."""
+    # lazy: matplotlib loads slowly; only the curve plot needs it
     import matplotlib
 
     matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    import matplotlib.pyplot as plt  # lazy: after choosing the Agg backend
 
     fig, ax = plt.subplots(figsize=(6, 4), dpi=100)
     for name, (ks, acc) in curves.items():

@@ -12,7 +12,7 @@ Under ``torchrun`` (:mod:`detector.distributed`) the same function trains data-p
 batch, so N processes follow the single-process run up to floating-point order; rank 0 alone writes the
 run folder and validates. With ``model.norm=bn`` each process normalises over its own share of the batch.
 
-Presets (:data:`TRAIN_PRESETS`): ``cpu`` = the TrainConfig defaults (cpu model, 4096 points, 2000 steps,
+Presets (``detector/presets/{cpu,paper}.yaml``, their ``train`` sections): ``cpu`` = the TrainConfig defaults (cpu model, 4096 points, 2000 steps,
 lr 2e-3, cosine, 50 warm-up steps); ``paper`` = the paper's model, 16384 points, batch 4, 20000 steps,
 lr 1e-3, 500 warm-up steps, the first 2000 steps segmentation-only (the paper pre-trains segmentation;
 it gives no step counts or learning rate, these are ours).
@@ -22,11 +22,8 @@ from __future__ import annotations
 
 import csv
 import dataclasses
-import difflib
 import math
 import time
-import types
-import typing
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -34,12 +31,17 @@ from typing import Any
 import numpy as np
 import torch
 import yaml
+from tqdm import tqdm
 
+from detector import distributed
 from detector.checkpoint import read_checkpoint, save_checkpoint
+from detector.config import (NETWORK_PRESETS, config_from_dict, config_to_dict, load_preset, load_yaml,
+                             set_dotted)
 from detector.data import NORMALISATION, PointDataset, StreamBatchSampler, collate
 from detector.distributed import DistContext
 from detector.errors import DetectorError
 from detector.loss import LossConfig, multitask_loss
+from detector.model import ModelConfig, PoseNet, preset
 
 #: Keys of a batch that are labels or bookkeeping; every other key is a sampling index for the network.
 LABEL_KEYS = ("features", "cls", "instance", "control_points", "frame", "point_index")
@@ -80,12 +82,6 @@ class TrainConfig:
     seed: int = 0
 
 
-#: Training presets: overrides of the TrainConfig defaults (the defaults are the cpu preset).
-TRAIN_PRESETS: dict[str, dict[str, Any]] = {
-    "cpu": {},
-    "paper": {"preset": "paper", "num_points": 16384, "steps": 20000, "batch_size": 4, "lr": 1e-3,
-              "warmup_steps": 500, "seg_pretrain_steps": 2000, "checkpoint_every": 1000, "val_every": 1000},
-}
 
 
 @dataclass
@@ -114,74 +110,14 @@ class TrainSummary:
 # ------------------------------------------------------------------------------------------------- config
 
 
-def config_from_dict(cls: type, data: Any, where: str = "config") -> Any:
-    """Build dataclass ``cls`` strictly from a mapping: unknown keys and wrong types are DetectorErrors."""
-    if isinstance(data, cls):
-        return data
-    if not isinstance(data, dict):
-        raise DetectorError(f"{where}: expected a mapping, got {data!r}")
-    fields = {f.name: f for f in dataclasses.fields(cls)}
-    hints = typing.get_type_hints(cls)
-    unknown = [k for k in data if k not in fields]
-    if unknown:
-        close = difflib.get_close_matches(str(unknown[0]), fields, n=1)
-        raise DetectorError(f"{where}: unknown key '{unknown[0]}'" + (f" (did you mean '{close[0]}'?)" if close else ""))
-    return cls(**{k: _typed(hints[k], v, f"{where}.{k}") for k, v in data.items()})
-
-
-def _typed(tp: Any, value: Any, where: str) -> Any:
-    """``value`` checked (and ints widened to float) against type hint ``tp``."""
-    if dataclasses.is_dataclass(tp):
-        return config_from_dict(tp, value, where)
-    args = typing.get_args(tp)
-    if typing.get_origin(tp) in (typing.Union, types.UnionType):
-        if value is None and type(None) in args:
-            return None
-        return _typed(next(a for a in args if a is not type(None)), value, where)
-    if typing.get_origin(tp) is list:
-        if not isinstance(value, (list, tuple)):
-            raise DetectorError(f"{where}: expected a list, got {value!r}")
-        return [_typed(args[0], v, where) for v in value]
-    if typing.get_origin(tp) is dict or tp is dict:
-        if not isinstance(value, dict):
-            raise DetectorError(f"{where}: expected a mapping, got {value!r}")
-        return dict(value)
-    ok = {bool: lambda v: isinstance(v, bool),
-          int: lambda v: isinstance(v, int) and not isinstance(v, bool),
-          float: lambda v: isinstance(v, (int, float)) and not isinstance(v, bool),
-          str: lambda v: isinstance(v, str)}.get(tp, lambda v: True)
-    if not ok(value):
-        raise DetectorError(f"{where}: expected {getattr(tp, '__name__', tp)}, got {value!r}")
-    return float(value) if tp is float else value
-
-
-def config_to_dict(cfg: Any) -> dict:
-    """Plain nested dict of a config dataclass (for YAML and checkpoints)."""
-    return dataclasses.asdict(cfg)
-
-
-def set_dotted(data: dict, key: str, value: Any) -> None:
-    """Set ``data["loss"]["w_conf"] = value`` for key ``"loss.w_conf"`` (``model.*`` keys may be new)."""
-    parts = key.split(".")
-    node = data
-    for p in parts[:-1]:
-        if not isinstance(node.get(p), dict):
-            raise DetectorError(f"unknown option '{key}'")
-        node = node[p]
-    if parts[-1] not in node and parts[0] != "model":
-        close = difflib.get_close_matches(parts[-1], list(node), n=1)
-        raise DetectorError(f"unknown option '{key}'" + (f" (did you mean '{close[0]}'?)" if close else ""))
-    node[parts[-1]] = value
-
-
 def make_config(preset: str = "cpu", overrides: dict[str, Any] | None = None, base: TrainConfig | None = None
                 ) -> TrainConfig:
     """A validated TrainConfig: ``base`` (or the training preset) with dotted ``overrides`` applied."""
     if base is None:
-        if preset not in TRAIN_PRESETS:
-            raise DetectorError(f"unknown preset '{preset}' (available: {', '.join(sorted(TRAIN_PRESETS))})")
+        if preset not in NETWORK_PRESETS:
+            raise DetectorError(f"unknown preset '{preset}' (available: {', '.join(NETWORK_PRESETS)})")
         data = config_to_dict(TrainConfig())
-        data.update(TRAIN_PRESETS[preset])
+        data.update(load_preset(preset)["train"] or {})
     else:
         data = config_to_dict(base)
     for key, value in (overrides or {}).items():
@@ -194,13 +130,7 @@ def make_config(preset: str = "cpu", overrides: dict[str, Any] | None = None, ba
 def load_config_file(path: str | Path) -> TrainConfig:
     """A TrainConfig from a YAML file (e.g. a run folder's ``config.yaml``)."""
     path = Path(path)
-    if not path.is_file():
-        raise DetectorError(f"config file not found: {path}")
-    try:
-        data = yaml.safe_load(path.read_text()) or {}
-    except yaml.YAMLError as exc:
-        raise DetectorError(f"{path} is not valid YAML: {str(exc).splitlines()[0]}") from None
-    cfg = config_from_dict(TrainConfig, data, where=path.name)
+    cfg = config_from_dict(TrainConfig, load_yaml(path), where=path.name)
     validate_config(cfg)
     return cfg
 
@@ -229,7 +159,6 @@ def validate_config(cfg: TrainConfig) -> None:
 
 def build_model_config(cfg: TrainConfig):
     """The ModelConfig of a run: the model preset with the config's ``model`` overrides."""
-    from detector.model import ModelConfig, preset
 
     try:
         base = preset(cfg.preset).to_dict()
@@ -324,7 +253,7 @@ def forward_loss(model: torch.nn.Module, batch: dict[str, torch.Tensor], loss_cf
 
 
 @torch.no_grad()
-def evaluate(model: torch.nn.Module, dataset: PointDataset, cfg: TrainConfig, device: torch.device,
+def validation_metrics(model: torch.nn.Module, dataset: PointDataset, cfg: TrainConfig, device: torch.device,
              use_indices: bool) -> dict[str, float]:
     """Mean loss parts and keypoint accuracy over (the first ``val_frames`` of) ``dataset``, epoch 0, no grad."""
     n = len(dataset) if cfg.val_frames == 0 else min(cfg.val_frames, len(dataset))
@@ -458,8 +387,6 @@ def train(cfg: TrainConfig, train_path: str | Path, out_dir: str | Path, val_pat
     continues the same schedule), e.g. to train in time-boxed pieces. Under torchrun this joins the process
     group (:func:`detector.distributed.setup`) and trains with DDP.
     """
-    from detector import distributed
-
     ctx = distributed.setup(cfg.device)
     try:
         return _train(cfg, train_path, out_dir, val_path, resume, progress, stop_after, ctx)
@@ -469,9 +396,6 @@ def train(cfg: TrainConfig, train_path: str | Path, out_dir: str | Path, val_pat
 
 def _train(cfg: TrainConfig, train_path: str | Path, out_dir: str | Path, val_path: str | Path | None, resume: bool,
            progress: bool, stop_after: int | None, ctx: DistContext) -> TrainSummary:
-    from tqdm import tqdm
-
-    from detector.model import PoseNet
 
     validate_config(cfg)
     out_dir = Path(out_dir)
@@ -562,7 +486,7 @@ def _train(cfg: TrainConfig, train_path: str | Path, out_dir: str | Path, val_pa
                 t_last = now
                 recent = (recent + [row])[-10:]
                 if val_ds is not None and (step % cfg.val_every == 0 or step == total):
-                    val = evaluate(net, val_ds, cfg, device, use_indices)
+                    val = validation_metrics(net, val_ds, cfg, device, use_indices)
                     row.update(val_loss=val["loss"], val_acc=val["acc"])
                     if best is None or val["loss"] < best:
                         best = val["loss"]

@@ -15,14 +15,24 @@ from pathlib import Path
 import numpy as np
 import torch
 import yaml
+from tqdm import tqdm
 
 from detector.checkpoint import FORMAT, atomic_torch_save, read_checkpoint
-from detector.crops import CropConfig
+from detector.config import config_from_dict, config_to_dict, set_dotted
 from detector.cropnet import CropNet, CropNetConfig, crop_loss
+from detector.crops import CropConfig
 from detector.data import NORMALISATION, CropDataset, StreamBatchSampler, collate_crops
 from detector.errors import DetectorError
-from detector.train import (MetricsLog, _worker_init, config_from_dict, config_to_dict, loader_generator,
-                            lr_factor, resolve_device, restore_state, rng_state, run_checkpoint, set_dotted)
+from detector.train import (
+    MetricsLog,
+    _worker_init,
+    loader_generator,
+    lr_factor,
+    resolve_device,
+    restore_state,
+    rng_state,
+    run_checkpoint,
+)
 
 POSE_KIND = "crop-pose"
 POSE_METRICS = ["step", "epoch", "loss", "fg", "coord", "fg_acc", "crops", "lr", "steps_per_s"]
@@ -80,8 +90,6 @@ def train_pose(cfg: PoseTrainConfig, train_path: str | Path, out_dir: str | Path
     log_every: print a progress line every this many steps (0 = a tqdm bar when ``progress``).
     Returns {"steps", "seconds", "last" (mean of the last 20 steps' parts), "checkpoint"}.
     """
-    from tqdm import tqdm
-
     out_dir = Path(out_dir)
     last_path = run_checkpoint(out_dir, resume)
     device = resolve_device(cfg.device)

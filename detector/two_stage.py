@@ -9,21 +9,24 @@ save_two_stage`), written when stage 2 ends. ``resume`` continues whichever stag
 
 from __future__ import annotations
 
+import os
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 import yaml
 
 from detector.checkpoint import read_checkpoint, save_two_stage
+from detector.config import config_to_dict, load_preset, load_yaml
 from detector.errors import DetectorError
-from detector.train import config_to_dict, make_config, train
+from detector.infer import CropPoseConfig
+from detector.pose import PoseConfig
+from detector.train import make_config, train
 from detector.train_pose import load_pose_config, train_pose
 
-#: Stage-1 overrides of the cpu training preset: centre votes only.
-STAGE1_DEFAULTS = {"loss.centre_only": True, "steps": 3000, "checkpoint_every": 250, "val_every": 1000,
-                   "num_workers": 1}
-#: Pose-stage settings stored in the model file (keys of detector.pose.PoseConfig).
-POSE_DEFAULTS = {"tau": 0.3, "centre_votes": True, "min_score": 0.55, "min_score_unrefined": 0.2}
+#: The defaults of each section (``detector/presets/two-stage.yaml``): stage 1's overrides of the cpu training
+#: preset (centre votes only), stage 2's of PoseTrainConfig, and the pose and inference settings stored in the model
+#: file (keys of detector.pose.PoseConfig and detector.infer.CropPoseConfig).
+DEFAULTS: dict[str, dict] = {k: dict(v or {}) for k, v in load_preset("two-stage").items()}
 
 
 @dataclass
@@ -39,18 +42,17 @@ class TwoStageConfig:
 
     def resolved(self):
         """(TrainConfig of stage 1, PoseTrainConfig of stage 2, pose settings, stage-2 inference settings), checked."""
-        from detector.infer import CropPoseConfig
-        from detector.pose import PoseConfig
 
-        s1 = make_config("cpu", {**STAGE1_DEFAULTS, **self.stage1})
-        s2 = load_pose_config(None, self.stage2)
-        pose = {**POSE_DEFAULTS, **self.pose}
+        s1 = make_config("cpu", {**DEFAULTS["stage1"], **self.stage1})
+        s2 = load_pose_config(None, {**DEFAULTS["stage2"], **self.stage2})
+        pose = {**DEFAULTS["pose"], **self.pose}
+        infer = {**DEFAULTS["infer"], **self.infer}
         for name, keys, given in (("pose", PoseConfig.__dataclass_fields__, pose),
-                                  ("infer", CropPoseConfig.__dataclass_fields__, self.infer)):
+                                  ("infer", CropPoseConfig.__dataclass_fields__, infer)):
             unknown = [k for k in given if k not in keys]
             if unknown:
                 raise DetectorError(f"two-stage config: unknown {name} option '{unknown[0]}'")
-        return s1, s2, pose, asdict(CropPoseConfig(**self.infer))
+        return s1, s2, pose, asdict(CropPoseConfig(**infer))
 
 
 def load_two_stage_config(path: str | Path | None = None, overrides: dict | None = None) -> TwoStageConfig:
@@ -59,13 +61,8 @@ def load_two_stage_config(path: str | Path | None = None, overrides: dict | None
     data: dict = {"stage1": {}, "stage2": {}, "pose": {}, "infer": {}}
     if path is not None:
         path = Path(path)
-        if not path.is_file():
-            raise DetectorError(f"config file not found: {path}")
-        try:
-            loaded = yaml.safe_load(path.read_text()) or {}
-        except yaml.YAMLError as exc:
-            raise DetectorError(f"{path} is not valid YAML: {str(exc).splitlines()[0]}") from None
-        if not isinstance(loaded, dict) or set(loaded) - set(data):
+        loaded = load_yaml(path)
+        if set(loaded) - set(data):
             raise DetectorError(f"{path}: a two-stage config has the keys stage1, stage2, pose and infer")
         for k, v in loaded.items():
             data[k].update(v or {})
@@ -87,8 +84,6 @@ def train_two_stage(cfg: TwoStageConfig, train_path: str | Path, out_dir: str | 
     A stage whose run is complete is not trained again; one that was interrupted is resumed (with ``resume``).
     Returns the model file's path.
     """
-    import os
-
     if int(os.environ.get("WORLD_SIZE", "1")) > 1:
         raise DetectorError("the two-stage model trains in one process (on a GPU with --set stage1.device=cuda "
                             "--set stage2.device=cuda); torchrun is for --preset cpu or paper")

@@ -8,10 +8,10 @@ import cv2
 import numpy as np
 import pytest
 
-from argen.ar import estimate_board_pose, implausible_pose, pose_error
-from argen.board import Board
-from argen.camera import look_at
 from argen.config import ARConfig, BoardConfig
+from argen.sim.ar import estimate_board_pose, implausible_pose, pose_error
+from argen.sim.board import Board
+from argen.sim.camera import look_at
 
 K = np.array([[572.4114, 0, 325.2611], [0, 573.57043, 242.04899], [0, 0, 1]])  # LineMOD Kinect
 GREY = 128

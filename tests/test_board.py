@@ -5,9 +5,9 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from argen.board import Board, texture_uv
 from argen.config import BoardConfig
 from argen.errors import ArgenError
+from argen.sim.board import Board, texture_uv
 
 CONFIGS = [BoardConfig(), BoardConfig(markers_per_side=7, marker_size=0.045, marker_gap=0.015, margin=0.01)]
 

@@ -1,13 +1,13 @@
 import json
 
 import numpy as np
-import pytest
 import open3d as o3d
+import pytest
 import trimesh
 
 from argen import bop
 from argen.errors import ArgenError
-from argen.objects import builtin_objects, control_points, load_models, surface_scene, write_models
+from argen.models.objects import builtin_objects, control_points, load_models, surface_scene, write_models
 
 
 def test_builtin_objects_are_linemod_sized_and_deterministic():
@@ -159,7 +159,7 @@ def test_labels_of_bop_rotations_stored_like_real_ground_truth_validate(tmp_path
     import numpy as np
     from typer.testing import CliRunner
 
-    from argen.cli import app
+    from argen.cli.app import app
     from argen.label import LabelConfig, LabelRequest, run_label
     from argen.validate import validate_file
 
@@ -186,7 +186,7 @@ def test_capture_writes_the_bop19_test_targets_and_merge_keeps_them(tmp_path):
     from typer.testing import CliRunner
 
     from argen import bop
-    from argen.cli import app
+    from argen.cli.app import app
 
     run = CliRunner()
     for i in (0, 1):
@@ -216,8 +216,8 @@ def test_capture_writes_models_eval_resampled_on_the_model_surface(tmp_path):
     from typer.testing import CliRunner
 
     from argen import bop
-    from argen.cli import app
-    from argen.objects import EVAL_EDGE, load_models
+    from argen.cli.app import app
+    from argen.models.objects import EVAL_EDGE, load_models
 
     r = CliRunner().invoke(app, ["capture-sim", "--frames", "1", "--noise", "none", "--seed", "2",
                                  "--out", str(tmp_path / "ds"), "--quiet"])
@@ -268,7 +268,7 @@ def test_models_keep_the_source_files_vertex_normals(tmp_path):
 def _capture(tmp_path, name, *args):
     from typer.testing import CliRunner
 
-    from argen.cli import app
+    from argen.cli.app import app
 
     r = CliRunner().invoke(app, ["capture-sim", "--noise", "none", "--out", str(tmp_path / name), "--quiet", *args])
     assert r.exit_code == 0, r.output
@@ -277,7 +277,7 @@ def _capture(tmp_path, name, *args):
 
 def _gt_full_masks(ds, scene, im_id, K, width, height):
     """Each GT instance rendered alone from the dataset's models: {gt index: (height, width) bool}."""
-    from argen.render import RenderItem, Renderer
+    from argen.sim.render import Renderer, RenderItem
 
     objs = {o.obj_id: o for o in load_models(ds / "models")}
     items = []

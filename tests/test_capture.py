@@ -10,12 +10,12 @@ import pytest
 from typer.testing import CliRunner
 
 from argen import bop
-from argen.capture import CaptureRequest, run_capture
-from argen.cli import app
+from argen.cli.app import app
 from argen.config import load_template, override
-from argen.noise import axial_sigma, incidence_angle, normals_from_depth
-from argen.objects import builtin_objects, load_models
-from argen.render import RenderItem, get_renderer
+from argen.models.objects import builtin_objects, load_models
+from argen.sim.capture import CaptureRequest, run_capture
+from argen.sim.noise import axial_sigma, incidence_angle, normals_from_depth
+from argen.sim.render import RenderItem, get_renderer
 
 
 def capture(out: Path, frames: int, sets: dict | None = None, objects=None, workers: int = 1, **kw):
@@ -185,7 +185,7 @@ def test_bad_input_is_one_line_and_exit_2(tmp_path, args, msg):
 
 
 def test_corrupt_ply_is_one_line(tmp_path):
-    from argen.objects import write_models
+    from argen.models.objects import write_models
 
     d = tmp_path / "models"
     write_models(d, builtin_objects(["mug"]))
@@ -209,7 +209,7 @@ def test_board_command_writes_a_printable_png(tmp_path):
     assert res.exit_code == 0, res.output
     from PIL import Image
 
-    from argen.board import Board
+    from argen.sim.board import Board
 
     im = Image.open(tmp_path / "b.png")
     side = Board.from_config(load_template("linemod").board).side

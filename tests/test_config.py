@@ -1,6 +1,6 @@
 import pytest
 
-from argen.config import (TemplateConfig, available_templates, from_dict, load_template, override, to_dict)
+from argen.config import TemplateConfig, available_templates, from_dict, load_template, override, to_dict
 from argen.errors import ArgenError
 
 

@@ -8,12 +8,11 @@ import torch
 from scipy.spatial.transform import Rotation
 from typer.testing import CliRunner
 
-from argen.cli import app as argen_app
+from argen.cli.app import app as argen_app
 from argen.h5 import LabelFile
 from argen.label import LabelConfig, LabelRequest, run_label
 from detector.cropnet import CropNet, CropNetConfig, crop_loss
-from detector.crops import (CropConfig, ball_rows, model_coordinates, roll_about_ray, symmetry_targets,
-                            training_crop)
+from detector.crops import CropConfig, ball_rows, model_coordinates, roll_about_ray, symmetry_targets, training_crop
 from detector.data import NORMALISATION, CropDataset, collate_crops
 from detector.pose import kabsch_batch, ransac_kabsch
 
@@ -167,7 +166,7 @@ def test_two_stage_train_resume_eval_predict(labels, tmp_path):
     import json
 
     from detector.checkpoint import load_checkpoint
-    from detector.cli import app as det_app
+    from detector.cli.app import app as det_app
 
     run = CliRunner()
     out = tmp_path / "run"
@@ -275,7 +274,7 @@ def test_crop_poser_with_true_crop_labels_gives_exact_poses(labels):
 def test_pose_from_crop_returns_the_best_fit_first_and_the_other_hypotheses_by_fit():
     """Verification ranks the RANSAC hypotheses by how well the model surface fits the foreground points: with
     60 % right and 40 % wrong coordinates the exact pose comes first, and the alternatives follow by fit."""
-    from argen.objects import builtin_objects
+    from argen.models.objects import builtin_objects
     from detector.infer import CropPoseConfig, pose_from_crop
     from detector.pose import ObjectInfo, fit_residuals, fit_rms
 

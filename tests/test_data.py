@@ -169,8 +169,7 @@ import pickle  # noqa: E402
 import torch  # noqa: E402
 from pykdtree.kdtree import KDTree  # noqa: E402
 
-from detector.data import (NORMALISATION, PointDataset, augment, class_index, collate,  # noqa: E402
-                           inference_batch, sample_rows)
+from detector.data import NORMALISATION, PointDataset, augment, class_index, collate, inference_batch, sample_rows  # noqa: E402
 from detector.errors import DetectorError  # noqa: E402
 
 torch.set_num_threads(1)

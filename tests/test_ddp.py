@@ -10,13 +10,13 @@ from pathlib import Path
 
 import pytest
 import torch
+from test_data import TINY_MODEL, write_synthetic_h5
 
 from detector.checkpoint import load_checkpoint
 from detector.data import StreamBatchSampler, rank_share
 from detector.errors import DetectorError
 from detector.loss import LossConfig, multitask_loss
 from detector.train import read_metrics
-from test_data import TINY_MODEL, write_synthetic_h5
 
 torch.set_num_threads(1)
 
@@ -75,9 +75,9 @@ def test_two_gloo_processes_match_single_process_training(tmp_path):
     torchrun = [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node", "2"]
     for name, launch in (("single", [sys.executable]), ("ddp", torchrun)):
         # 2 steps, then resumed to 4 (the schedule stretches the same way in both runs)
-        res = _run([*launch, "-m", "detector.cli", *_train_args(h5, tmp_path / name, 2)], tmp_path)
+        res = _run([*launch, "-m", "detector.cli.app", *_train_args(h5, tmp_path / name, 2)], tmp_path)
         assert ("(2 processes)" in res.stdout) == (name == "ddp"), res.stdout
-        _run([*launch, "-m", "detector.cli", "train", str(h5), "--out", str(tmp_path / name), "--resume",
+        _run([*launch, "-m", "detector.cli.app", "train", str(h5), "--out", str(tmp_path / name), "--resume",
               "--steps", "4", "--quiet"], tmp_path)
     one, two = read_metrics(tmp_path / "single" / "metrics.csv"), read_metrics(tmp_path / "ddp" / "metrics.csv")
     assert [r["step"] for r in two] == [1, 2, 3, 4] and [r["phase"] for r in two] == ["seg", "full", "full", "full"]
@@ -110,7 +110,7 @@ def test_batch_not_divisible_by_the_processes_is_one_line(tmp_path):
     args = _train_args(h5, tmp_path / "r", 2)
     args[args.index("--batch-size") + 1] = "3"
     res = subprocess.run([sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node", "2",
-                          "-m", "detector.cli", *args], capture_output=True, text=True, timeout=600, env=_env())
+                          "-m", "detector.cli.app", *args], capture_output=True, text=True, timeout=600, env=_env())
     assert res.returncode != 0
     assert "detector: error: batch_size 3 is not divisible by the 2 distributed processes" in res.stderr
     assert not (tmp_path / "r" / "last.pt").exists()

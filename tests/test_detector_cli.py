@@ -9,11 +9,11 @@ from pathlib import Path
 
 import pytest
 import torch
+from test_data import TINY_MODEL, write_synthetic_h5
 from typer.testing import CliRunner
 
-from detector.cli import app
+from detector.cli.app import app
 from detector.train import read_metrics
-from test_data import TINY_MODEL, write_synthetic_h5
 
 torch.set_num_threads(1)
 runner = CliRunner()
@@ -77,7 +77,7 @@ def test_user_errors_are_one_line_with_exit_code_2(h5_path, tmp_path):
 
 def test_console_script_help():
     exe = Path(sys.executable).with_name("detector")
-    cmd = [str(exe)] if exe.is_file() else [sys.executable, "-m", "detector.cli"]
+    cmd = [str(exe)] if exe.is_file() else [sys.executable, "-m", "detector.cli.app"]
     res = subprocess.run([*cmd, "train", "--help"], capture_output=True, text=True, timeout=60,
                          env={**os.environ, "COLUMNS": "200"})
     assert res.returncode == 0 and "--seg-pretrain-steps" in res.stdout and "--resume" in res.stdout

@@ -8,10 +8,11 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
-from argen.cli import app as argen_app
+from argen.cli.app import app as argen_app
 from argen.h5 import LabelFile
 from argen.label import LabelConfig, LabelRequest, run_label
-from detector.evaluate import Predictions, evaluate, oracle_predictor
+from detector.evaluate import evaluate
+from detector.infer import Predictions, oracle_predictor
 from detector.pose import PoseConfig
 from detector.report import read_bop_csv
 
@@ -100,7 +101,7 @@ def gt_predictor(ds, scene_id, im_id):
     from scipy.spatial import cKDTree
 
     from argen import bop
-    from argen.objects import load_models
+    from argen.models.objects import load_models
 
     models = {o.obj_id: o for o in load_models(ds / "models")}
     gts = bop.load_scene(ds, "train_pbr", scene_id).gts[im_id]
@@ -219,7 +220,7 @@ def random_checkpoint(label_file, tmp_path_factory):
 
 
 def test_cli_eval_and_predict_with_a_random_network(random_checkpoint, dataset, tmp_path):
-    from detector.cli import app
+    from detector.cli.app import app
 
     ds, h5 = dataset
     runner = CliRunner()

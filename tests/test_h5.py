@@ -9,9 +9,16 @@ import numpy as np
 import pytest
 
 from argen.errors import ArgenError
-from argen.h5 import (FrameLabels, InstanceTable, LabelFile, LabelWriter, ObjectTable, point_control_points,
-                      write_label_file)
-from argen.objects import box_corners
+from argen.h5 import (
+    FrameLabels,
+    InstanceTable,
+    LabelFile,
+    LabelWriter,
+    ObjectTable,
+    point_control_points,
+    write_label_file,
+)
+from argen.models.objects import box_corners
 
 ATTRS = dict(created_by="test", source_dataset="synthetic", source_split="train", source_argen_json="",
              max_points=500, max_depth=2.0, subsampling="voxel+random")

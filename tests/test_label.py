@@ -17,13 +17,12 @@ import pytest
 from pykdtree.kdtree import KDTree
 from typer.testing import CliRunner
 
-from argen.cli import app
+from argen.cli.app import app
 from argen.errors import ArgenError
-from argen.h5 import LabelFile
 from argen.features import grid_normals
-from argen.label import (LabelConfig, LabelRequest, object_table, run_label, sample_surface,
-                         symmetry_transforms)
-from argen.objects import builtin_objects, load_models
+from argen.h5 import LabelFile
+from argen.label import LabelConfig, LabelRequest, object_table, run_label, sample_surface, symmetry_transforms
+from argen.models.objects import builtin_objects, load_models
 
 runner = CliRunner()
 
@@ -249,7 +248,7 @@ def assert_same_contents(a: Path, b: Path) -> None:
 def test_kill_and_resume_equals_uninterrupted_run(builtin_ds, tmp_path):
     dataset, _ = builtin_ds
     ref = label(dataset, tmp_path / "ref.h5", chunk=1, cfg=LabelConfig(render_masks=True))
-    argen = [sys.executable, "-c", "from argen.cli import main; main()"]
+    argen = [sys.executable, "-c", "from argen.cli.app import main; main()"]
     for attempt in range(3):
         out = tmp_path / f"run{attempt}.h5"
         first_part = tmp_path / f"run{attempt}.h5.partial" / "part-000000.h5"

@@ -9,11 +9,11 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
-from argen.cli import app as argen_app
+from argen.cli.app import app as argen_app
 from argen.label import LabelConfig, LabelRequest, run_label
 from detector.checkpoint import load_checkpoint
-from detector.evaluate import evaluate, network_predictor
-from detector.predict import checkpoint_objects, checkpoint_pose_config, checkpoint_poser
+from detector.evaluate import evaluate
+from detector.infer import checkpoint_objects, checkpoint_pose_config, checkpoint_poser, network_predictor
 
 CKPT = Path(__file__).resolve().parents[1] / "checkpoints" / "lm8.pt"
 

@@ -8,7 +8,7 @@ from pathlib import Path
 import pytest
 from typer.testing import CliRunner
 
-from argen.cli import app
+from argen.cli.app import app
 
 runner = CliRunner()
 ARGS = ["--frames", "5", "--seed", "21", "--quiet", "--set", "camera.elevation_deg=[30.0,80.0]"]

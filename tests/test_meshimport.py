@@ -12,10 +12,10 @@ from PIL import Image
 from typer.testing import CliRunner
 
 from argen import bop
-from argen.cli import app
+from argen.cli.app import app
 from argen.errors import ArgenError
-from argen.meshimport import ImportOptions, edge_counts, import_meshes, import_to_folder, load_any_models
-from argen.objects import builtin_objects, load_models
+from argen.models.meshimport import ImportOptions, edge_counts, import_meshes, import_to_folder, load_any_models
+from argen.models.objects import builtin_objects, load_models
 
 C = trimesh.creation
 runner = CliRunner()

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from argen.objects import builtin_objects, load_objects
+from argen.models.objects import builtin_objects, load_objects
 from detector.metrics import accuracy, accuracy_curve, add, adds, greedy_match, match_frame, pose_error, prf
 
 LM = Path(__file__).resolve().parents[2] / "shared/data/lm"

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from argen.config import NoiseConfig
-from argen.noise import (
+from argen.sim.noise import (
     _incidence_from_depth,
     apply_noise,
     axial_sigma,
@@ -257,7 +257,7 @@ def _step_scene(h=120, w=200, z_fg=0.6, z_bg=1.0, c0=80, c1=120):
 
 
 def test_shadow_lies_on_the_far_side_of_the_projector_and_has_the_disparity_width():
-    from argen.noise import shadow_mask
+    from argen.sim.noise import shadow_mask
 
     Kc = small_K(120, 200)
     d = _step_scene()
@@ -273,7 +273,7 @@ def test_shadow_lies_on_the_far_side_of_the_projector_and_has_the_disparity_widt
 
 
 def test_correlated_field_has_unit_std_and_is_correlated_over_its_window():
-    from argen.noise import correlated_field
+    from argen.sim.noise import correlated_field
 
     f = correlated_field(300, 400, 4.0, np.random.default_rng(1))
     assert f.std() == pytest.approx(1.0, rel=0.05) and abs(f.mean()) < 0.05

@@ -5,8 +5,16 @@ import pytest
 import torch
 
 from detector.errors import DetectorError
-from detector.ops import (ball_query, compute_indices_torch, farthest_point_sample, fps_numpy, group,
-                          precompute_indices, three_interpolate, three_nn)
+from detector.ops import (
+    ball_query,
+    compute_indices_torch,
+    farthest_point_sample,
+    fps_numpy,
+    group,
+    precompute_indices,
+    three_interpolate,
+    three_nn,
+)
 
 torch.set_num_threads(1)
 

@@ -2,8 +2,8 @@ import cv2
 import numpy as np
 
 from argen.config import PlacementConfig
-from argen.objects import builtin_objects
-from argen.placement import choose_instances, place_instances, separation
+from argen.models.objects import builtin_objects
+from argen.sim.placement import choose_instances, place_instances, separation
 
 
 def _raster(poly, res=0.001, half=0.3):

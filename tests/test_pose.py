@@ -4,9 +4,19 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from argen.objects import builtin_objects
-from detector.pose import (ObjectInfo, PoseConfig, detect, icp_refine, kabsch, nms, refine,
-                           robust_control_points, vote_clusters, Detection)
+from argen.models.objects import builtin_objects
+from detector.pose import (
+    Detection,
+    ObjectInfo,
+    PoseConfig,
+    detect,
+    icp_refine,
+    kabsch,
+    nms,
+    refine,
+    robust_control_points,
+    vote_clusters,
+)
 
 BOX = np.array([[x, y, z] for x in (-0.04, 0.04) for y in (-0.03, 0.03) for z in (-0.02, 0.02)] + [[0, 0, 0]])
 DIAM = float(np.linalg.norm([0.08, 0.06, 0.04]))

@@ -14,14 +14,14 @@ import pytest
 from typer.testing import CliRunner
 
 from argen import bop
-from argen.capture import CaptureRequest, FrameMaker, composite, run_capture
-from argen.cli import app
+from argen.cli.app import app
 from argen.config import load_template, override
 from argen.errors import ArgenError
-from argen.objects import builtin_objects
-from argen.realcap import run_real_capture
-from argen.recording import open_recording, write_recording
-from argen.render import RenderOutput
+from argen.models.objects import builtin_objects
+from argen.real.capture import run_real_capture
+from argen.real.recording import open_recording, write_recording
+from argen.sim.capture import CaptureRequest, FrameMaker, composite, run_capture
+from argen.sim.render import RenderOutput
 
 SETS = {"camera.width": 320, "camera.height": 240, "camera.fx": 286.2, "camera.fy": 286.8, "camera.cx": 162.6,
         "camera.cy": 121.0, "camera.distance": [0.5, 0.7], "camera.elevation_deg": [45.0, 85.0],

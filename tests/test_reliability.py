@@ -17,7 +17,7 @@ from pathlib import Path
 
 import pytest
 
-ARGEN = [sys.executable, "-m", "argen.cli"]
+ARGEN = [sys.executable, "-m", "argen.cli.app"]
 ARGS = ["capture-sim", "--frames", "5", "--seed", "11", "--quiet",
         "--set", "camera.elevation_deg=[30.0,80.0]"]
 
@@ -113,7 +113,7 @@ def test_read_only_output_is_one_line(tmp_path):
 def test_out_of_range_options(tmp_path, args, msg):
     from typer.testing import CliRunner
 
-    from argen.cli import app
+    from argen.cli.app import app
 
     res = CliRunner().invoke(app, ["capture-sim", "--out", str(tmp_path / "o"), "--quiet", *args])
     lines = [ln for ln in res.output.splitlines() if ln.strip()]

@@ -1,4 +1,4 @@
-"""Tests for argen.render: OpenCV camera convention, exact depth, seg and silhouettes, textures,
+"""Tests for argen.sim.render: OpenCV camera convention, exact depth, seg and silhouettes, textures,
 determinism and the reuse of one renderer (and its uploaded meshes) across frames."""
 
 from __future__ import annotations
@@ -7,8 +7,15 @@ import numpy as np
 import pytest
 import trimesh
 
-from argen.render import (Light, RenderItem, Renderer, _consistent_winding, _crease_split, get_renderer,
-                          textured_plane)
+from argen.sim.render import (
+    Light,
+    Renderer,
+    RenderItem,
+    _consistent_winding,
+    _crease_split,
+    get_renderer,
+    textured_plane,
+)
 
 W, H = 160, 120
 K = np.array([[200.0, 0.0, 79.3], [0.0, 210.0, 61.7], [0.0, 0.0, 1.0]])

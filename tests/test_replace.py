@@ -10,13 +10,13 @@ import pytest
 from typer.testing import CliRunner
 
 from argen import bop
-from argen.capture import CaptureRequest, run_capture
-from argen.cli import app
+from argen.cli.app import app
 from argen.config import NoiseConfig, load_template, override
 from argen.errors import ArgenError
-from argen.objects import builtin_objects, load_models
-from argen.render import RenderItem, get_renderer
-from argen.replace import fit_plane, pixel_rays, replace_dataset, rotation_about, select_frames
+from argen.models.objects import builtin_objects, load_models
+from argen.real.replace import fit_plane, pixel_rays, replace_dataset, rotation_about, select_frames
+from argen.sim.capture import CaptureRequest, run_capture
+from argen.sim.render import RenderItem, get_renderer
 
 SETS = {"camera.width": 320, "camera.height": 240, "camera.fx": 286.2, "camera.fy": 286.8, "camera.cx": 162.6,
         "camera.cy": 121.0, "camera.distance": [0.5, 0.7], "camera.elevation_deg": [50.0, 85.0],

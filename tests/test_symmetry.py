@@ -7,8 +7,8 @@ import open3d as o3d
 import pytest
 import trimesh
 
-from argen.objects import builtin_objects, info_from_mesh, load_models, surface_scene
-from argen.symmetry import find_symmetries, rotation_angle_axis, surface_moments
+from argen.models.objects import builtin_objects, info_from_mesh, load_models, surface_scene
+from argen.models.symmetry import find_symmetries, rotation_angle_axis, surface_moments
 
 C = trimesh.creation
 

@@ -10,13 +10,21 @@ import numpy as np
 import pytest
 import torch
 import yaml
+from test_data import TINY_MODEL, write_synthetic_h5
 
 from detector.checkpoint import load_checkpoint, read_checkpoint, save_checkpoint
 from detector.data import StreamBatchSampler
 from detector.errors import DetectorError
-from detector.train import (TrainConfig, keypoint_targets, load_config_file, lr_factor, make_config,
-                            read_metrics, total_steps, train)
-from test_data import TINY_MODEL, write_synthetic_h5
+from detector.train import (
+    TrainConfig,
+    keypoint_targets,
+    load_config_file,
+    lr_factor,
+    make_config,
+    read_metrics,
+    total_steps,
+    train,
+)
 
 torch.set_num_threads(1)
 
@@ -163,7 +171,7 @@ def test_checkpoint_loads_for_inference_and_rejects_foreign_files(h5_path, tmp_p
                     normalisation=ck.normalisation)
     with pytest.raises(DetectorError, match="do not match"):
         load_checkpoint(tmp_path / "mismatch.pt")
-    assert not list(tmp_path.glob(".*.tmp"))  # atomic writes leave no temp files
+    assert not list(tmp_path.glob(".tmp-*"))  # atomic writes leave no temp files
 
 
 def test_training_reduces_the_loss_quickly(h5_path, tmp_path):

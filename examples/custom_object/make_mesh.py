@@ -13,7 +13,7 @@ import sys
 from pathlib import Path
 
 from argen import bop
-from argen.objects import builtin_objects
+from argen.models.objects import builtin_objects
 
 REPO = Path(__file__).resolve().parents[2]
 LM_DUCK = REPO.parent / "shared" / "data" / "lm" / "models" / "obj_000009.ply"

@@ -14,7 +14,7 @@ import cv2
 import numpy as np
 
 from argen.config import PlacementConfig
-from argen.objects import ObjectModel
+from argen.models.objects import ObjectModel
 
 
 @dataclass

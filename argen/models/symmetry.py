@@ -31,7 +31,7 @@ import numpy as np
 import open3d as o3d
 import trimesh
 
-from argen.objects import surface_scene
+from argen.models.objects import surface_scene
 
 #: Default tolerance: fraction of the diameter a symmetry may move the surface by.
 DEFAULT_TOL = 0.05

@@ -15,7 +15,7 @@ every ``step_deg`` degrees (360 / 30 = 12 copies per frame):
 3. Insertion. The rotation axis is the working-plane normal through the object's box centre: the world z
    axis of the frame's camera pose when scene_camera.json gives one (board frame, argen datasets), else
    the fitted plane's normal. Each copy is rendered and z-composited into the filled frame (a real surface
-   in front hides it), and sensor noise (argen.noise, the template's model) goes on the changed pixels.
+   in front hides it), and sensor noise (argen.sim.noise, the template's model) goes on the changed pixels.
 
 Output: BOP layout (same split name), image ``im_id * n + k`` for copy k of input image ``im_id``;
 other GT instances keep their poses and have their visible masks reduced by the inserted copy.
@@ -32,16 +32,17 @@ from pathlib import Path
 
 import cv2
 import numpy as np
+from tqdm import tqdm
 
 from argen import __version__, bop
-from argen.capture import composite
 from argen.config import NoiseConfig
 from argen.errors import ArgenError
 from argen.fileio import write_json
-from argen.noise import apply_noise
-from argen.meshimport import load_any_models
-from argen.objects import ObjectModel, write_models
-from argen.render import Light, RenderItem, get_renderer
+from argen.models.meshimport import load_any_models
+from argen.models.objects import ObjectModel, write_models
+from argen.sim.capture import composite
+from argen.sim.noise import apply_noise
+from argen.sim.render import Light, RenderItem, get_renderer
 
 REMOVE_GROW_PX = 2  # silhouette growth for the removal, pixels
 REMOVE_TOL = 0.015  # metres: a measured point this far in front of the rendered object is an occluder, kept
@@ -319,7 +320,6 @@ def replace_dataset(dataset: str | Path, out: str | Path, split: str = "test", m
     n = int(round(360.0 / step_deg))
     log, written = [], 0
     jsons = bop.SceneJsons(out, split)
-    from tqdm import tqdm
 
     for sid, im in tqdm(chosen, desc="replace", unit="frame", disable=not progress, file=sys.stderr):
         sc = scenes[sid]

@@ -1,10 +1,10 @@
 """Real AR capture: virtual objects composited into a recorded RGB-D sequence (``argen capture --recording``).
 
 Per recorded frame: detect the printed board's markers in the colour image and estimate T_cam_board
-(argen.ar, the same acceptance checks as capture-sim); draw the frame's placements with the same
-scene code as capture-sim (argen.scene.build_scene: only its placements and lights are used, the
+(argen.sim.ar, the same acceptance checks as capture-sim); draw the frame's placements with the same
+scene code as capture-sim (argen.sim.scene.build_scene: only its placements and lights are used, the
 simulated table and clutter are not, the recording is the background); render the objects from the
-estimated pose and z-composite them into the real depth and colour (argen.capture.FrameMaker.insert):
+estimated pose and z-composite them into the real depth and colour (argen.sim.capture.FrameMaker.insert):
 a virtual pixel shows unless the real surface is more than ``occlusion_margin`` in front of it, so a
 real object in front of a virtual one hides it. Sensor noise (template ``noise``) goes on the virtual
 pixels only: the real depth already carries the sensor's own. Frame ``i`` of the recording is BOP
@@ -14,21 +14,28 @@ output is the BOP layout of capture-sim and a killed run resumes like it.
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import time
-import dataclasses
 from pathlib import Path
 
 import numpy as np
 
-from argen.ar import estimate_board_pose
-from argen.capture import (CaptureRequest, CaptureSummary, FrameMaker, accept, finite_or_none, frame_rngs,
-                           run_capture)
 from argen.config import TemplateConfig, override
 from argen.errors import ArgenError
-from argen.objects import ObjectModel
-from argen.recording import Recording
-from argen.scene import build_scene
+from argen.models.objects import ObjectModel
+from argen.real.recording import Recording
+from argen.sim.ar import estimate_board_pose
+from argen.sim.capture import (
+    CaptureRequest,
+    CaptureSummary,
+    FrameMaker,
+    accept,
+    finite_or_none,
+    frame_rngs,
+    run_capture,
+)
+from argen.sim.scene import build_scene
 
 DEFAULT_OCCLUSION_MARGIN = 0.003  # metres: real depth noise on the board must not eat the objects' bases
 

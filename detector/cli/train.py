@@ -1,88 +1,22 @@
-"""The ``detector`` command line: parse, call, print. User errors become one line on stderr, exit 2.
-
-Commands: ``train`` (here); ``eval`` and ``predict`` come from ``detector.cli_eval.register(app)``, hooked
-in by :func:`register_commands` below.
-"""
+"""``detector train``: the default two-stage model, or the paper's single network (``--preset cpu`` / ``paper``)."""
 
 from __future__ import annotations
 
-import functools
-import shutil
 from pathlib import Path
 from typing import Optional
 
 import typer
-import yaml
 
-from detector.errors import DetectorError, argen_errors
-
-app = typer.Typer(add_completion=False, no_args_is_help=True, pretty_exceptions_enable=False,
-                  help="detector: a multi-task PointNet++ for 6-DoF pose from depth (train, eval, predict).")
-
-#: Files that mark a folder as a training run (``--overwrite`` removes only such folders).
-RUN_MARKERS = ("config.yaml", "metrics.csv", "last.pt", "two_stage.yaml")
-
-#: The default --preset: the two-stage detector (detector.two_stage); "cpu" and "paper" are the paper's network.
-TWO_STAGE = "two-stage"
+from detector.cli.common import TWO_STAGE, prepare_run_folder, user_errors
+from detector.config import parse_set_options
+from detector.errors import DetectorError
 
 
-@app.callback()
-def root() -> None:
-    """detector: a multi-task PointNet++ for 6-DoF pose from depth (train, eval, predict)."""
+def register(app: typer.Typer) -> None:
+    """Add the ``train`` command to ``app``."""
+    app.command("train")(user_errors(train_cmd))
 
 
-def fail(msg: str, code: int = 2) -> None:
-    """Print one line ``detector: error: MSG`` on stderr and exit with ``code``."""
-    typer.echo(f"detector: error: {msg}", err=True)
-    raise typer.Exit(code)
-
-
-def user_errors(fn):
-    """Turn DetectorError (and argen's errors, through :func:`detector.errors.argen_errors`) into one line and
-    exit 2; Ctrl-C into a hint and exit 130."""
-
-    @functools.wraps(fn)
-    def wrapper(*args, **kwargs):
-        try:
-            with argen_errors():
-                return fn(*args, **kwargs)
-        except KeyboardInterrupt:
-            fail("interrupted; add --resume to continue from the last checkpoint", 130)
-        except DetectorError as exc:
-            fail(str(exc))
-
-    return wrapper
-
-
-def parse_set_options(pairs: list[str]) -> dict:
-    """``["lr=1e-3", "loss.w_conf=2"]`` -> ``{"lr": 0.001, "loss.w_conf": 2}`` (values parsed as YAML)."""
-    out = {}
-    for pair in pairs or []:
-        key, sep, text = pair.partition("=")
-        if not sep or not key.strip():
-            raise DetectorError(f"--set expects KEY=VALUE, got '{pair}'")
-        try:
-            out[key.strip()] = yaml.safe_load(text)
-        except yaml.YAMLError:
-            raise DetectorError(f"--set {key}: cannot parse value '{text}'") from None
-    return out
-
-
-def prepare_run_folder(out: Path, resume: bool, overwrite: bool) -> None:
-    """Refuse to train into an existing run without --resume or --overwrite; --overwrite clears a run folder."""
-    if resume or not out.exists() or (out.is_dir() and not any(out.iterdir())):
-        return
-    if not out.is_dir():
-        raise DetectorError(f"--out {out} exists and is not a folder")
-    if not overwrite:
-        raise DetectorError(f"run folder {out} already exists; add --resume to continue it or --overwrite to replace it")
-    if not any((out / m).exists() for m in RUN_MARKERS):
-        raise DetectorError(f"--overwrite: {out} does not look like a run folder; not removing it")
-    shutil.rmtree(out)
-
-
-@app.command("train")
-@user_errors
 def train_cmd(
     train_file: Path = typer.Argument(..., help="label file (HDF5) from `argen label`"),
     out: Path = typer.Option(..., "--out", help="run folder: config.yaml, metrics.csv, last.pt, best.pt"),
@@ -111,6 +45,7 @@ def train_cmd(
     training --out/detect (stage 1) and --out/pose (stage 2); set their lengths with --set stage1.steps=N
     --set stage2.steps=M. --preset cpu or paper trains the paper's single network (--out/last.pt).
     """
+    # lazy: torch loads in seconds; `detector --help` and the other commands do not need it
     from detector import distributed
     from detector.train import load_config_file, make_config, train
 
@@ -162,7 +97,7 @@ def train_cmd(
 def _train_two_stage(train_file: Path, out: Path, config: Optional[Path], sets: list[str], resume: bool,
                      overwrite: bool, quiet: bool, flags: dict) -> None:
     """``detector train`` for the two-stage model (see :mod:`detector.two_stage`)."""
-    from detector.two_stage import load_two_stage_config, train_two_stage
+    from detector.two_stage import load_two_stage_config, train_two_stage  # lazy: torch (see train_cmd)
 
     given = [f"--{k.replace('_', '-')}" for k, v in flags.items() if v is not None]
     if given:
@@ -180,20 +115,3 @@ def _train_two_stage(train_file: Path, out: Path, config: Optional[Path], sets: 
     typer.echo(f"{out}: two-stage model -> {path}")
 
 
-def register_commands() -> None:
-    """Add the ``eval`` and ``predict`` commands of ``detector.cli_eval``."""
-    from detector.cli_eval import register
-
-    register(app)
-
-
-register_commands()
-
-
-def main() -> None:
-    """Console script ``detector``."""
-    app(prog_name="detector")
-
-
-if __name__ == "__main__":
-    main()

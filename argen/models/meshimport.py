@@ -4,10 +4,10 @@ Reads what trimesh reads (OBJ with MTL textures, STL, PLY, GLB/GLTF, OFF), decid
 repairs what can be repaired (duplicate vertices, degenerate and repeated faces, inconsistent winding,
 inward normals, holes whose boundary is a simple loop), refuses what cannot (no faces, no area, a flat mesh,
 an open mesh it cannot close), bakes texture colours into vertex colours, finds the symmetries
-(:mod:`argen.symmetry`) and writes, in millimetres:
+(:mod:`argen.models.symmetry`) and writes, in millimetres:
 
     OUT/obj_NNNNNN.ply, OUT/models_info.json (with symmetries), OUT/names.json ({id: file stem}),
-    OUT/models_eval/ (BOP's evaluation models, see :func:`argen.objects.eval_mesh`)
+    OUT/models_eval/ (BOP's evaluation models, see :func:`argen.models.objects.eval_mesh`)
 
 Ids: a file named ``obj_NNNNNN`` keeps NNNNNN; a stem already in OUT/names.json keeps its id; new stems get
 the next free ids in name order. Importing the same files again rewrites the same bytes.
@@ -25,9 +25,17 @@ import trimesh
 from argen import bop
 from argen.errors import ArgenError
 from argen.fileio import read_json
-from argen.objects import (ObjectModel, info_from_mesh, load_models, load_objects, read_names, select_ids,
-                           write_models, write_models_eval)
-from argen.symmetry import DEFAULT_TOL, Symmetries, find_symmetries
+from argen.models.objects import (
+    ObjectModel,
+    info_from_mesh,
+    load_models,
+    load_objects,
+    read_names,
+    select_ids,
+    write_models,
+    write_models_eval,
+)
+from argen.models.symmetry import DEFAULT_TOL, Symmetries, find_symmetries
 
 #: File types read (what trimesh loads as triangle meshes).
 MESH_SUFFIXES = (".obj", ".stl", ".ply", ".glb", ".gltf", ".off")
@@ -44,7 +52,7 @@ class ImportOptions:
     """units: auto|mm|cm|m; origin: keep|centre (the box centre); up: the file's axis that points up when the
     object rests (x, y, z, -x, -y, -z; it becomes +z), or None to keep the axes; symmetry: auto|none|a JSON
     file ({stem, name or id: {"symmetries_discrete": [...], "symmetries_continuous": [...]}} in BOP's mm form;
-    objects it does not list are searched); symmetry_tol: fraction of the diameter (:mod:`argen.symmetry`)."""
+    objects it does not list are searched); symmetry_tol: fraction of the diameter (:mod:`argen.models.symmetry`)."""
 
     units: str = "auto"
     origin: str = "keep"

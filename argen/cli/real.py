@@ -1,4 +1,4 @@
-"""The ``argen capture`` (real recordings) and ``argen replace`` commands (registered on argen.cli's app)."""
+"""The ``argen capture`` (real recordings) and ``argen replace`` commands (registered by argen.cli.app)."""
 
 from __future__ import annotations
 
@@ -7,12 +7,12 @@ from typing import Optional
 
 import typer
 
+from argen.cli.common import NOISE_CHOICES, check_placeable, load_config, user_errors
 from argen.errors import ArgenError
 
 
 def register(app: typer.Typer) -> None:
     """Add the capture and replace commands to ``app``."""
-    from argen.cli import NOISE_CHOICES, check_placeable, load_config, user_errors  # argen.cli imports this module at its end
 
     @app.command("capture")
     @user_errors
@@ -40,10 +40,11 @@ def register(app: typer.Typer) -> None:
         quiet: bool = typer.Option(False, "--quiet", help="no progress bar"),
     ):
         """Composite virtual objects into a recorded RGB-D sequence of the printed board; write BOP scenes."""
-        from argen.capture import CaptureRequest
-        from argen.meshimport import load_any_models
-        from argen.realcap import run_real_capture
-        from argen.recording import open_recording
+        # lazy: pyrender, open3d and trimesh take seconds to load; --help and the other commands need none
+        from argen.models.meshimport import load_any_models
+        from argen.real.capture import run_real_capture
+        from argen.real.recording import open_recording
+        from argen.sim.capture import CaptureRequest
 
         if workers < 1:
             raise ArgenError(f"--workers must be at least 1, got {workers}")
@@ -80,8 +81,9 @@ def register(app: typer.Typer) -> None:
         quiet: bool = typer.Option(False, "--quiet", help="no progress bar"),
     ):
         """The paper's fine-tuning frames: the target object removed and re-inserted every STEP degrees."""
+        # lazy: pyrender, open3d and trimesh take seconds to load; --help and the other commands need none
         from argen.config import load_template
-        from argen.replace import replace_dataset
+        from argen.real.replace import replace_dataset
 
         if noise not in NOISE_CHOICES:
             raise ArgenError(f"--noise must be 'on' or 'none' ('kinect' = 'on'), got '{noise}'")

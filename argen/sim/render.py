@@ -34,7 +34,7 @@ lights]), then gamma-encoded with x^(1/2.2) as pyrender does. Albedo is the line
 colour or texture, so a surface under total light 1 shows about its own colour.
 
 Processes: ``get_renderer`` keeps one renderer per (process, image size, max_faces). OSMesa
-contexts do not survive ``fork``; start workers with the "spawn" method (argen.capture does).
+contexts do not survive ``fork``; start workers with the "spawn" method (argen.sim.capture does).
 """
 
 from __future__ import annotations
@@ -62,7 +62,7 @@ from scipy.sparse import coo_matrix  # noqa: E402
 from scipy.sparse.csgraph import connected_components  # noqa: E402
 
 if os.environ["PYOPENGL_PLATFORM"] == "osmesa" and not hasattr(OpenGL.platform.PLATFORM, "OSMesa"):
-    raise ImportError("PyOpenGL was imported before argen.render could select OSMesa: import argen.render "
+    raise ImportError("PyOpenGL was imported before argen.sim.render could select OSMesa: import argen.sim.render "
                       "before pyrender/OpenGL, or set PYOPENGL_PLATFORM=osmesa in the environment")
 
 __all__ = ["RenderItem", "Light", "RenderOutput", "Renderer", "get_renderer", "textured_plane", "pyrender"]
@@ -225,6 +225,7 @@ def _decimate(mesh: trimesh.Trimesh, max_faces: int) -> trimesh.Trimesh:
     kind = mesh.visual.kind if mesh.visual is not None and mesh.visual.defined else None
     if len(mesh.faces) <= max_faces or kind not in (None, "vertex"):
         return mesh
+    # lazy: open3d loads in about a second; only meshes too large to render are simplified with it
     import open3d as o3d
 
     om = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(np.asarray(mesh.vertices, dtype=np.float64)),
@@ -291,7 +292,7 @@ def textured_plane(side: float, image: np.ndarray, thickness: float = 0.0) -> tr
 
     side: metres. image: (h, w, 3) uint8 RGB. thickness: metres; > 0 adds a box below the top surface
     (z in [-thickness, 0]) whose sides show the texture's edge pixels.
-    Texture convention (same as argen.board): image column 0 is x = -side/2, row 0 is y = +side/2, so
+    Texture convention (same as argen.sim.board): image column 0 is x = -side/2, row 0 is y = +side/2, so
     the image looks upright and unmirrored seen from above (from +z, x right, y up). The top surface
     faces +z; a board without thickness is invisible from below (back faces are culled).
     Returns a trimesh.Trimesh with TextureVisuals (uv: u = (x + side/2) / side, v = (y + side/2) / side).

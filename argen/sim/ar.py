@@ -12,8 +12,8 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
-from argen.board import Board
 from argen.config import ARConfig
+from argen.sim.board import Board
 
 
 @dataclass

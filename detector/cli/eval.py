@@ -7,10 +7,11 @@ from typing import Optional
 
 import typer
 
+from detector.cli.common import user_errors
+
 
 def register(app: typer.Typer) -> None:
-    """Add the ``eval`` and ``predict`` commands to ``app`` (errors handled by ``detector.cli.user_errors``)."""
-    from detector.cli import user_errors
+    """Add the ``eval`` and ``predict`` commands to ``app``."""
 
     @app.command("eval")
     @user_errors
@@ -36,14 +37,15 @@ def register(app: typer.Typer) -> None:
         quiet: bool = typer.Option(False, "--quiet", help="No progress bar."),
     ) -> None:
         """Evaluate a checkpoint on a label file: ADD/ADD-S accuracy, F1, timings, BOP results CSV."""
-        from argen.h5 import LabelFile
+        # lazy: torch and open3d load in seconds; `detector --help` and the other commands do not need them
         from detector.checkpoint import load_checkpoint
-        from detector.evaluate import evaluate, network_predictor
-        from detector.predict import checkpoint_objects, checkpoint_pose_config, checkpoint_poser
+        from detector.data import open_label_file
+        from detector.evaluate import evaluate
+        from detector.infer import checkpoint_objects, checkpoint_pose_config, checkpoint_poser, network_predictor
 
         ckpt = load_checkpoint(checkpoint, device)
         cfg = checkpoint_pose_config(ckpt, tau, cell, icp, min_score)
-        with LabelFile(data) as lf:
+        with open_label_file(data) as lf:
             n = lf.num_frames
         poser = checkpoint_poser(ckpt, checkpoint_objects(ckpt)[0], device, seed)
         s = evaluate(network_predictor(ckpt, seed), data, out, icp=icp, cfg=cfg, device=device,
@@ -74,10 +76,10 @@ def register(app: typer.Typer) -> None:
         seed: int = typer.Option(0, "--seed", help="Point sampling seed."),
     ) -> None:
         """Predict the poses in one frame: poses.json (metres) and poses.png (3D boxes)."""
+        # lazy: torch and open3d load in seconds; `detector --help` and the other commands do not need them
         from detector.checkpoint import load_checkpoint
-        from detector.evaluate import network_predictor
-        from detector.predict import (checkpoint_objects, checkpoint_pose_config, checkpoint_poser, load_input,
-                                      predict)
+        from detector.infer import checkpoint_objects, checkpoint_pose_config, checkpoint_poser, network_predictor
+        from detector.predict import load_input, predict
 
         ckpt = load_checkpoint(checkpoint, device)
         cfg = checkpoint_pose_config(ckpt, tau, cell, icp, min_score)

@@ -18,6 +18,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from pathlib import Path
 
+import cv2
 import numpy as np
 
 from argen import bop
@@ -61,7 +62,6 @@ class Recording:
 
 def read_depth_png(path: Path, depth_scale: float) -> np.ndarray:
     """A 16-bit depth PNG in metres: (H, W) float32, with a check that the values are plausible depths."""
-    import cv2
 
     img = cv2.imread(str(path), cv2.IMREAD_ANYDEPTH)
     if img is None:

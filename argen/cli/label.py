@@ -1,4 +1,4 @@
-"""The ``argen label``, ``argen validate`` and ``argen preview`` commands (registered on argen.cli's app)."""
+"""The ``argen label``, ``argen validate`` and ``argen preview`` commands (registered by argen.cli.app)."""
 
 from __future__ import annotations
 
@@ -7,12 +7,12 @@ from typing import Optional
 
 import typer
 
+from argen.cli.common import parse_shard, user_errors
 from argen.errors import ArgenError
 
 
 def register(app: typer.Typer) -> None:
     """Add the label, validate and preview commands to ``app``."""
-    from argen.cli import user_errors  # here, not at import time: argen.cli imports this module at its end
 
     @app.command("label")
     @user_errors
@@ -40,7 +40,7 @@ def register(app: typer.Typer) -> None:
                                             "(one of N machines); join the files with `argen merge`"),
     ):
         """Turn BOP scenes into per-point labels (features, semantic, instance, 9 control points) in HDF5."""
-        from argen.cli import parse_shard
+        # lazy: pyrender, open3d and trimesh take seconds to load; --help and the other commands need none
         from argen.label import LabelConfig, LabelRequest, run_label
 
         cfg = LabelConfig(max_points=max_points, max_depth=max_depth, voxel=voxel, seed=seed,
@@ -59,6 +59,7 @@ def register(app: typer.Typer) -> None:
         max_errors: int = typer.Option(10, "--max-errors", help="stop after this many violations"),
     ):
         """Check a label file's schema and label invariants; exit 1 and list the first violations."""
+        # lazy: pyrender, open3d and trimesh take seconds to load; --help and the other commands need none
         from argen.validate import validate_file
 
         n, errs = validate_file(file, max_errors=max(1, max_errors))
@@ -78,6 +79,7 @@ def register(app: typer.Typer) -> None:
         models: Optional[Path] = typer.Option(None, "--models", help="models folder, when SOURCE is a BOP dataset"),
     ):
         """Draw a frame's points coloured by instance and the 3D boxes from the control points."""
+        # lazy: pyrender, open3d and trimesh take seconds to load; --help and the other commands need none
         from argen.preview import preview_bop, preview_file
 
         if out.suffix.lower() != ".png":

@@ -1,4 +1,4 @@
-"""The ``argen models`` commands: bring your own meshes (registered on argen.cli's app)."""
+"""The ``argen models`` commands: bring your own meshes (registered by argen.cli.app)."""
 
 from __future__ import annotations
 
@@ -7,12 +7,12 @@ from typing import Optional
 
 import typer
 
-from argen.symmetry import DEFAULT_TOL
+from argen.cli.common import user_errors
+from argen.models.symmetry import DEFAULT_TOL
 
 
 def register(app: typer.Typer) -> None:
     """Add the ``models`` command group (``argen models import``) to ``app``."""
-    from argen.cli import user_errors  # here, not at import time: argen.cli imports this module at its end
 
     models_app = typer.Typer(add_completion=False, no_args_is_help=True,
                              help="Your own objects: import meshes as a BOP models folder.")
@@ -34,7 +34,8 @@ def register(app: typer.Typer) -> None:
     ):
         """Import meshes into a BOP models folder (PLY in mm, models_info.json with symmetries, names.json,
         models_eval/) that capture-sim, capture and replace take with --models."""
-        from argen.meshimport import ImportOptions, import_to_folder
+        # lazy: pyrender, open3d and trimesh take seconds to load; --help and the other commands need none
+        from argen.models.meshimport import ImportOptions, import_to_folder
 
         opts = ImportOptions(units=units, origin=origin, up=up, symmetry=symmetry, symmetry_tol=symmetry_tol)
         imported = import_to_folder(meshes, out, opts)

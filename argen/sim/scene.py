@@ -12,11 +12,11 @@ from dataclasses import dataclass, field
 import numpy as np
 import trimesh
 
-from argen.board import Board
 from argen.config import TemplateConfig
-from argen.objects import ObjectModel
-from argen.placement import Placement, choose_instances, convex_hull_2d, place_instances, separation
-from argen.render import Light, RenderItem, textured_plane
+from argen.models.objects import ObjectModel
+from argen.sim.board import Board
+from argen.sim.placement import Placement, choose_instances, convex_hull_2d, place_instances, separation
+from argen.sim.render import Light, RenderItem, textured_plane
 
 N_CLUTTER_SHAPES = 24
 

@@ -17,6 +17,7 @@ import trimesh
 
 from argen import bop
 from argen.errors import ArgenError
+from argen.fileio import read_json, write_json
 
 # BOP LineMOD object ids and names (Hinterstoisser et al. 2012).
 LINEMOD_NAMES = {
@@ -109,7 +110,6 @@ def info_from_mesh(mesh: trimesh.Trimesh, symmetries_discrete=(), symmetries_con
 
 def read_names(models_dir: Path) -> dict[str, str] | None:
     """The ``{"obj_id": name}`` map of a models folder (names.json, else the legacy argen_names.json), or None."""
-    from argen.fileio import read_json
 
     for name in (NAMES_FILE, LEGACY_NAMES_FILE):
         p = Path(models_dir) / name
@@ -125,6 +125,7 @@ def surface_scene(mesh: trimesh.Trimesh):
     """An open3d RaycastingScene of the mesh's triangles, for exact point-to-surface distances and closest
     points (same units as the mesh). open3d is imported here, not at the top: every argen command imports this
     module, and open3d takes about a second to load."""
+    # lazy: open3d loads in about a second (see the docstring)
     import open3d as o3d
 
     scene = o3d.t.geometry.RaycastingScene()
@@ -315,8 +316,6 @@ def write_models(models_dir: str | os.PathLike, objects: list[ObjectModel], eval
     """Write the objects as a BOP models folder (PLY in mm, models_info.json, names.json); with
     ``evaluation``, BOP's models_eval folder instead (:func:`eval_mesh` of each object, no names file).
     A model file already there is kept unless its id is in ``rewrite``."""
-    from argen.fileio import write_json
-
     d = Path(models_dir)
     d.mkdir(parents=True, exist_ok=True)
     for o in objects:

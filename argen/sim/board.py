@@ -22,6 +22,7 @@ from pathlib import Path
 
 import cv2
 import numpy as np
+from PIL import Image
 
 from argen.config import BoardConfig
 from argen.errors import ArgenError
@@ -194,7 +195,6 @@ class Board:
 
     def save_print(self, path: str | Path, dpi: int | None = None) -> Path:
         """Write the print image as a PNG with dpi metadata, so it prints at true size. Returns the path."""
-        from PIL import Image
 
         dpi = int(dpi or self.cfg.print_dpi)
         path = Path(path)

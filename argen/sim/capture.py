@@ -16,9 +16,9 @@ resumes with the frames not yet in it.
 from __future__ import annotations
 
 import json
-import re
 import multiprocessing as mp
 import os
+import re
 import shutil
 import sys
 import time
@@ -26,18 +26,19 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
+from tqdm import tqdm
 
 from argen import __version__, bop
-from argen.ar import estimate_board_pose, pose_error
-from argen.board import Board
-from argen.camera import intrinsics, sample_view
 from argen.config import TemplateConfig, simulation_K, to_dict
 from argen.errors import ArgenError
 from argen.fileio import read_json, write_json
-from argen.noise import apply_noise
-from argen.objects import ObjectModel, write_models, write_models_eval
-from argen.render import get_renderer
-from argen.scene import build_scene
+from argen.models.objects import ObjectModel, write_models, write_models_eval
+from argen.sim.ar import estimate_board_pose, pose_error
+from argen.sim.board import Board
+from argen.sim.camera import intrinsics, sample_view
+from argen.sim.noise import apply_noise
+from argen.sim.render import get_renderer
+from argen.sim.scene import build_scene
 
 STAGES = ("scene", "render", "ar", "noise", "write")
 
@@ -351,8 +352,6 @@ def run_capture(req: CaptureRequest, maker=None, kind: str = "capture-sim", extr
         jsons.flush()
         write_json(req.out / "capture_log.json",
                    {"frames": [log_entries[k] for k in sorted(log_entries)]}, indent=1)
-
-    from tqdm import tqdm
 
     bar = tqdm(total=len(todo), desc=kind, unit="frame", disable=not req.progress, file=sys.stderr)
     last_commit = time.perf_counter()

@@ -1,0 +1,83 @@
+"""What the ``argen`` commands share: the error wrapper (user errors become one line on stderr, exit 2), the
+template loader with the CLI's shortcuts (``--set`` parsed by :func:`argen.settings.parse_sets`), ``--shard``
+parsing and the placement check."""
+
+from __future__ import annotations
+
+import functools
+from typing import Optional
+
+import typer
+
+from argen.config import load_template, override
+from argen.errors import ArgenError
+from argen.settings import parse_sets
+
+
+def fail(msg: str) -> None:
+    """Print one error line and exit with code 2."""
+    typer.echo(f"argen: error: {msg}", err=True)
+    raise typer.Exit(2)
+
+
+def user_errors(fn):
+    """Turn ArgenError (and a few OS-level user errors) into one line on stderr and exit 2."""
+
+    @functools.wraps(fn)
+    def wrapper(*args, **kwargs):
+        try:
+            return fn(*args, **kwargs)
+        except ArgenError as exc:
+            fail(str(exc))
+        except KeyboardInterrupt:
+            typer.echo("argen: interrupted; run the same command again to resume", err=True)
+            raise typer.Exit(130)
+
+    return wrapper
+
+
+def load_config(scene: str, seed: Optional[int], noise: Optional[str], sets: list[str], objects: Optional[str],
+                sensor: Optional[str] = None):
+    cfg = load_template(scene, sensor=sensor)
+    dotted = parse_sets(sets)  # the --set syntax of both command lines (argen.settings)
+    if seed is not None:
+        dotted["seed"] = seed
+    if noise is not None:
+        if noise not in NOISE_CHOICES:
+            raise ArgenError(f"--noise must be 'on' or 'none' ('kinect' = 'on'), got '{noise}'")
+        dotted["noise.enabled"] = noise != "none"
+    if objects is not None:
+        dotted["objects"] = [o for o in objects.split(",") if o.strip()]
+        if not dotted["objects"]:
+            raise ArgenError("--objects names no object")
+    return override(cfg, dotted) if dotted else cfg
+
+
+#: --noise values: the sensor profile's noise on ("kinect", its old name, kept), or none.
+NOISE_CHOICES = ("on", "kinect", "none")
+
+
+def parse_shard(text: Optional[str]) -> tuple[int, int]:
+    """``"2/8"`` -> (2, 8); None -> (0, 1)."""
+    if text is None:
+        return (0, 1)
+    try:
+        i, n = (int(v) for v in text.split("/"))
+    except ValueError:
+        raise ArgenError(f"--shard expects I/N (e.g. 0/4), got '{text}'") from None
+    if not (n >= 1 and 0 <= i < n):
+        raise ArgenError(f"--shard must be I/N with 0 <= I < N, got '{text}'")
+    return (i, n)
+
+
+def check_placeable(cfg, objs) -> None:
+    """Refuse objects that fit on the board's free area in no resting pose (impossible placement)."""
+    # lazy: trimesh and cv2.aruco load slowly; `argen --help` and most commands do not need them
+    from argen.sim.board import Board
+    from argen.sim.placement import never_fit
+
+    half = Board.from_config(cfg.board).free_half_extent
+    bad = never_fit(objs, cfg.placement, half)
+    if bad:
+        raise ArgenError(f"impossible placement: {', '.join(bad)} cannot fit on the board's free area "
+                         f"({2 * half:.3f} m square); use a larger board (board.markers_per_side, board.marker_gap)")

@@ -1,0 +1,33 @@
+"""The ``detector`` command line: parse, call, print. User errors become one line on stderr, exit 2.
+
+Commands: ``train`` (:mod:`detector.cli.train`), ``eval`` and ``predict`` (:mod:`detector.cli.eval`); what they
+share is in :mod:`detector.cli.common`.
+"""
+
+from __future__ import annotations
+
+import typer
+
+from detector.cli.eval import register as register_eval
+from detector.cli.train import register as register_train
+
+app = typer.Typer(add_completion=False, no_args_is_help=True, pretty_exceptions_enable=False,
+                  help="detector: a multi-task PointNet++ for 6-DoF pose from depth (train, eval, predict).")
+
+
+@app.callback()
+def root() -> None:
+    """detector: a multi-task PointNet++ for 6-DoF pose from depth (train, eval, predict)."""
+
+
+for _register in (register_train, register_eval):
+    _register(app)
+
+
+def main() -> None:
+    """Console script ``detector``."""
+    app(prog_name="detector")
+
+
+if __name__ == "__main__":
+    main()
