@@ -41,7 +41,10 @@ class PoseConfig:
     the ICP pose is kept (see :func:`fit_rms`); icp_gate: a scene point farther than this fraction of the
     diameter from every model point counts as an outlier at that distance; icp_starts: ICP runs from the
     detection's pose and from up to ``icp_starts - 1`` of its ``alternatives`` and keeps the best-fitting result
-    (a wrong-way first pose is a local minimum that ICP alone cannot leave);
+    (a wrong-way first pose is a local minimum that ICP alone cannot leave); icp_min_gain: the ICP pose is kept
+    only when it lowers that trimmed RMS by at least this fraction of the diameter (a smaller gain is within what
+    the model's point sampling itself contributes, and on a few points of a smooth surface ICP can slide a right
+    pose by centimetres for such a gain);
     propagate: metres, a frame point belongs to a detection when its ``owner_votes`` nearest predicted points
     within this distance are all that detection's members (ICP points);
     centre_votes: instances from the box-centre votes alone (a two-stage model's stage 1, whose corners are
@@ -66,6 +69,7 @@ class PoseConfig:
     icp_trim: float = 0.7
     icp_gate: float = 0.05
     icp_starts: int = 8
+    icp_min_gain: float = 0.001
     support_distance: float = 0.02
     propagate: float = 0.01
     owner_votes: int = 3
@@ -416,7 +420,8 @@ def owned_points(owners: np.ndarray, members: np.ndarray, num_predicted: int) ->
 def refine_pose(scene_points: np.ndarray, obj_id: int, R: np.ndarray, t: np.ndarray, objects: ObjectInfo,
                 cfg: PoseConfig, alternatives: list | None = None
                 ) -> tuple[np.ndarray, np.ndarray, bool, tuple[float, float]]:
-    """ICP from (R, t), kept only when it lowers the trimmed point-to-plane RMS of the same scene points.
+    """ICP from (R, t), kept only when it lowers the trimmed point-to-plane RMS of the same scene points
+    by at least ``cfg.icp_min_gain`` of the diameter.
 
     scene_points: (S,3) camera frame, metres; R (3,3), t (3,) the initial T_cam_model; alternatives: other
     starting poses [(R, t), ...], of which the first ``cfg.icp_starts - 1`` are also refined; the ICP result
@@ -435,7 +440,7 @@ def refine_pose(scene_points: np.ndarray, obj_id: int, R: np.ndarray, t: np.ndar
         if best is None or after < best[0]:
             best = (after, R1, t1)
     after, R1, t1 = best
-    if after < before:
+    if after < before - cfg.icp_min_gain * dia:
         return R1, t1, True, (before, after)
     return np.asarray(R, np.float64), np.asarray(t, np.float64), False, (before, after)
 

@@ -1,5 +1,7 @@
 """Pose stage: Kabsch, voting, NMS, ICP on exact synthetic data."""
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
@@ -303,3 +305,27 @@ def test_icp_starts_from_alternatives_and_keeps_the_best_fit():
         assert add_error(model, R, t, two.R, two.t) > 0.1 * obj.diameter  # the near pose is the third start
         assert three.icp == "accepted" and three.fit_rms[1] < three.fit_rms[0]
         assert add_error(model, R, t, three.R, three.t) < 0.003
+
+
+def test_icp_keeps_a_right_pose_unless_it_fits_clearly_better():
+    """ICP on noisy points always finds some pose that fits them a little better than the right one; on a smooth
+    surface (here a sphere, which every rotation about its centre fits as well) that pose may lie anywhere along
+    the surface. A gain within the sensor's and the model sampling's own noise is not taken (``icp_min_gain``),
+    while a pose that is really off (1 cm) is still corrected."""
+    rng = np.random.default_rng(3)
+    v = rng.normal(size=(3000, 3))
+    model = 0.05 * v / np.linalg.norm(v, axis=1, keepdims=True)  # a sphere of 10 cm diameter, centred at 0
+    R, t = np.eye(3), np.array([0.0, 0.0, 0.8])
+    w = rng.normal(size=(400, 3))
+    cap = 0.05 * w / np.linalg.norm(w, axis=1, keepdims=True)
+    scene = cap[cap[:, 2] < -0.01] @ R.T + t  # the part facing the camera
+    scene = scene + rng.normal(0, 0.0005, scene.shape)
+    objs = ObjectInfo({1: np.zeros((9, 3))}, {1: 0.1}, {1: model})
+    d = Detection(1, 1.0, R, t, len(scene), np.zeros((9, 3)), np.arange(len(scene)))
+    (slid,) = refine([d], scene, objs, PoseConfig(icp=True, icp_min_gain=0.0))
+    assert slid.icp == "accepted" and slid.fit_rms[0] - slid.fit_rms[1] < 0.001 * 0.1  # a gain below 0.1 mm
+    (kept,) = refine([d], scene, objs, PoseConfig(icp=True))
+    assert kept.icp == "rejected" and np.array_equal(kept.R, R) and np.array_equal(kept.t, t)
+    off = replace(d, t=t + [0.01, 0.0, 0.0])
+    (fixed,) = refine([off], scene, objs, PoseConfig(icp=True))
+    assert fixed.icp == "accepted" and np.linalg.norm(fixed.t - t) < 0.002
