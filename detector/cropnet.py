@@ -57,7 +57,7 @@ class EdgeConv(nn.Module):
         a = self.self_lin(x) - self.nb_lin(x)  # (B, n, out)
         b = self.nb_lin(x)
         nb = torch.gather(b, 1, idx.reshape(B, n * k, 1).expand(-1, -1, b.shape[-1])).reshape(B, n, k, -1)
-        return torch.relu(self.norm(a[:, :, None, :] + nb)).max(dim=2).values
+        return torch.relu(self.norm(a[:, :, None, :] + nb).max(dim=2).values)  # = max of the relu, k times cheaper
 
 
 def mlp(sizes: list[int]) -> nn.Sequential:

@@ -103,8 +103,9 @@ def pose_from_crop(xyz: np.ndarray, prob: np.ndarray, model_xyz: np.ndarray, dia
     cands = ransac_kabsch(model_xyz[fg], xyz[fg], prob[fg], cfg.inlier * diameter, rng, cfg.hypotheses, keep=keep)
     if keep > 1:
         tree, normals = surface
-        fits = [fit_rms(fit_residuals(xyz[fg], tree, normals, R, t, 0.05 * diameter), cfg.verify_trim)
-                for R, t, _ in cands]
+        res = fit_residuals(xyz[fg], tree, normals, np.stack([c[0] for c in cands]), np.stack([c[1] for c in cands]),
+                            0.05 * diameter)  # (verify, n): all hypotheses in one query
+        fits = [fit_rms(r, cfg.verify_trim) for r in res]
         order = np.argsort(fits, kind="stable")
         R, t, _ = cands[int(order[0])]
         others = [(cands[j][0], cands[j][1]) for j in order[1:]]

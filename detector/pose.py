@@ -196,6 +196,28 @@ def kabsch_batch(src: np.ndarray, dst: np.ndarray) -> tuple[np.ndarray, np.ndarr
     return R, cd - np.einsum("hij,hj->hi", R, cs)
 
 
+def weighted_kabsch_shared(src: np.ndarray, dst: np.ndarray, weights: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Weighted Kabsch for K weightings of the same correspondences at once: ``dst ~ R[k] @ src + t[k]`` under
+    weights[k] (the same solution as :func:`kabsch` for each row, never a reflection).
+
+    src, dst: (n,3) metres; weights: (K,n) >= 0, each row with a positive sum. Returns R (K,3,3), t (K,3) float64.
+    """
+    src, dst = np.asarray(src, np.float64), np.asarray(dst, np.float64)
+    w = np.asarray(weights, np.float64)
+    w = w / w.sum(1, keepdims=True)
+    cs, cd = w @ src, w @ dst  # (K,3)
+    M = np.einsum("kn,ni,nj->kij", w, src, dst) - cs[:, :, None] * cd[:, None, :]  # sum w (s - cs)(d - cd)^T
+    U, _, Vt = np.linalg.svd(M)
+    V, Ut = np.transpose(Vt, (0, 2, 1)), np.transpose(U, (0, 2, 1))
+    d = np.sign(np.linalg.det(V @ Ut))
+    d[d == 0] = 1.0
+    D = np.zeros((len(w), 3, 3))
+    D[:, 0, 0] = D[:, 1, 1] = 1.0
+    D[:, 2, 2] = d
+    R = V @ D @ Ut
+    return R, cd - np.einsum("kij,kj->ki", R, cs)
+
+
 def ransac_kabsch(model_pts: np.ndarray, scene_pts: np.ndarray, weights: np.ndarray, threshold: float,
                   rng: np.random.Generator, hypotheses: int = 128, refits: int = 3, keep: int = 1
                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray] | list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
@@ -216,16 +238,19 @@ def ransac_kabsch(model_pts: np.ndarray, scene_pts: np.ndarray, weights: np.ndar
     Rh, th = kabsch_batch(m[idx], p[idx])
     res = np.linalg.norm(np.einsum("hij,nj->hni", Rh, m) + th[:, None] - p, axis=2)  # (H, n)
     score = ((res < threshold) * w).sum(1)
-    out = []
-    for best in np.argsort(-score, kind="stable")[:max(keep, 1)]:
-        R, t = Rh[best], th[best]
-        inl = res[best] < threshold
-        for _ in range(refits):
-            if inl.sum() < 3:
-                break
-            R, t = kabsch(m[inl], p[inl], w[inl] + 1e-9)
-            inl = np.linalg.norm(m @ R.T + t - p, axis=1) < threshold
-        out.append((R, t, inl))
+    best = np.argsort(-score, kind="stable")[:max(keep, 1)]
+    R, t = Rh[best], th[best]
+    inl = res[best] < threshold  # (K, n)
+    active = np.ones(len(best), bool)
+    for _ in range(refits):  # all kept hypotheses at once; one whose inliers fall under 3 stays where it is
+        active &= inl.sum(1) >= 3
+        if not active.any():
+            break
+        R1, t1 = weighted_kabsch_shared(m, p, np.where(inl, w + 1e-9, 0.0))
+        R, t = np.where(active[:, None, None], R1, R), np.where(active[:, None], t1, t)
+        new = np.linalg.norm(np.einsum("kij,nj->kni", R, m) + t[:, None] - p, axis=2) < threshold
+        inl = np.where(active[:, None], new, inl)
+    out = [(R[k], t[k], inl[k]) for k in range(len(best))]
     return out if keep > 1 else out[0]
 
 
@@ -284,16 +309,22 @@ def fit_residuals(scene_points: np.ndarray, model_tree, model_normals: np.ndarra
     """Point-to-plane distance of each scene point to the model surface under the pose (R, t).
 
     scene_points: (S,3) camera frame, metres; model_tree: a scipy cKDTree of the model points (P,3) model frame;
-    model_normals: (P,3) unit normals; R (3,3), t (3,) T_cam_model; gate: metres, a point whose nearest model
-    point is farther gets ``gate``. Returns (S,) float64 metres, each at most ``gate``.
+    model_normals: (P,3) unit normals; R (3,3), t (3,) T_cam_model, or R (K,3,3), t (K,3) for K poses at once;
+    gate: metres, a point whose nearest model point is farther gets ``gate``. Returns (S,) float64 metres, each at
+    most ``gate`` ((K,S) for K poses).
     """
-    x = (np.asarray(scene_points, np.float64) - t) @ np.asarray(R, np.float64)  # model frame
-    d, j = model_tree.query(x, k=1, distance_upper_bound=gate)
+    R, t = np.asarray(R, np.float64), np.asarray(t, np.float64)
+    many = R.ndim == 3
+    Rk, tk = (R, t) if many else (R[None], t[None])
+    x = np.einsum("ksj,kji->ksi", np.asarray(scene_points, np.float64)[None] - tk[:, None], Rk)  # model frame
+    flat = x.reshape(-1, 3)
+    d, j = model_tree.query(flat, k=1, distance_upper_bound=gate)
     found = np.isfinite(d)
-    r = np.full(len(x), gate)
+    r = np.full(len(flat), gate)
     jj = j[found]
-    r[found] = np.minimum(np.abs(np.einsum("ij,ij->i", x[found] - model_tree.data[jj], model_normals[jj])), gate)
-    return r
+    r[found] = np.minimum(np.abs(np.einsum("ij,ij->i", flat[found] - model_tree.data[jj], model_normals[jj])), gate)
+    r = r.reshape(len(Rk), -1)
+    return r if many else r[0]
 
 
 def fit_rms(residuals: np.ndarray, trim: float) -> float:
@@ -432,14 +463,15 @@ def refine_pose(scene_points: np.ndarray, obj_id: int, R: np.ndarray, t: np.ndar
     tree, normals = objects.surface(obj_id)
     gate = cfg.icp_gate * dia
     before = fit_rms(fit_residuals(scene_points, tree, normals, R, t, gate), cfg.icp_trim)
-    best = None
-    for R0, t0 in [(R, t)] + list(alternatives or [])[:max(cfg.icp_starts - 1, 0)]:
-        R1, t1 = icp_refine(scene_points, objects.model_points[obj_id], R0, t0, cfg.icp_distance * dia,
-                            cfg.icp_iterations, objects.cloud(obj_id), cfg.icp_kernel * dia if cfg.icp_kernel else None)
-        after = fit_rms(fit_residuals(scene_points, tree, normals, R1, t1, gate), cfg.icp_trim)
-        if best is None or after < best[0]:
-            best = (after, R1, t1)
-    after, R1, t1 = best
+    starts = [(R, t)] + list(alternatives or [])[:max(cfg.icp_starts - 1, 0)]
+    results = [icp_refine(scene_points, objects.model_points[obj_id], R0, t0, cfg.icp_distance * dia,
+                          cfg.icp_iterations, objects.cloud(obj_id), cfg.icp_kernel * dia if cfg.icp_kernel else None)
+               for R0, t0 in starts]
+    res = fit_residuals(scene_points, tree, normals, np.stack([r[0] for r in results]),
+                        np.stack([r[1] for r in results]), gate)  # every start's result in one query
+    fits = [fit_rms(r, cfg.icp_trim) for r in res]
+    k = int(np.argmin(fits))  # the first of equal fits, as before
+    after, (R1, t1) = fits[k], results[k]
     if after < before - cfg.icp_min_gain * dia:
         return R1, t1, True, (before, after)
     return np.asarray(R, np.float64), np.asarray(t, np.float64), False, (before, after)

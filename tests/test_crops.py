@@ -105,6 +105,35 @@ def test_ransac_kabsch_recovers_a_pose_with_half_outliers():
     assert np.allclose(np.linalg.det(Rb), 1.0)
 
 
+def test_batched_kabsch_and_fit_measure_equal_their_one_at_a_time_forms():
+    """The vectorised refits (weighted_kabsch_shared) and the K-pose fit_residuals give what kabsch and
+    fit_residuals give one weighting / one pose at a time, reflections excluded."""
+    from scipy.spatial import cKDTree
+
+    from detector.pose import fit_residuals, kabsch, weighted_kabsch_shared
+
+    rng = np.random.default_rng(4)
+    m = rng.normal(size=(60, 3)) * 0.05
+    R, t = Rotation.random(random_state=rng).as_matrix(), rng.normal(size=3)
+    p = m @ R.T + t + rng.normal(0, 0.002, m.shape)
+    W = rng.uniform(0, 1, (6, 60)) * (rng.random((6, 60)) < 0.7)
+    Rb, tb = weighted_kabsch_shared(m, p, W)
+    for k in range(6):
+        on = W[k] > 0
+        Rk, tk = kabsch(m[on], p[on], W[k, on])
+        assert np.abs(Rk - Rb[k]).max() < 1e-9 and np.abs(tk - tb[k]).max() < 1e-9
+    assert np.allclose(np.linalg.det(Rb), 1.0)
+    mirrored = weighted_kabsch_shared(m, p * [1, 1, -1], W[:1])[0][0]  # a mirror image is still fitted by a rotation
+    assert np.linalg.det(mirrored) == pytest.approx(1.0)
+    tree, normals = cKDTree(m), rng.normal(size=m.shape)
+    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+    poses = [Rotation.random(random_state=rng).as_matrix() for _ in range(4)]
+    shifts = rng.normal(size=(4, 3)) * 0.01
+    many = fit_residuals(p, tree, normals, np.stack(poses), shifts + t, 0.01)
+    for k in range(4):
+        assert np.allclose(many[k], fit_residuals(p, tree, normals, poses[k], shifts[k] + t, 0.01), atol=1e-12)
+
+
 def test_crop_loss_takes_the_best_symmetry_and_ignores_padding():
     torch.manual_seed(0)
     coords = torch.randn(2, 3, 10, 3)
@@ -167,6 +196,9 @@ def test_two_stage_train_resume_eval_predict(labels, tmp_path):
 
     from detector.checkpoint import load_checkpoint
     from detector.cli.app import app as det_app
+    from detector.two_stage import DEFAULTS
+
+    tau = DEFAULTS["pose"]["tau"]  # the two-stage default, stored in the model file
 
     run = CliRunner()
     out = tmp_path / "run"
@@ -174,7 +206,7 @@ def test_two_stage_train_resume_eval_predict(labels, tmp_path):
     assert r.exit_code == 0, r.output
     assert (out / "model.pt").is_file() and (out / "detect" / "last.pt").is_file() and (out / "pose" / "last.pt").is_file()
     ck = load_checkpoint(out / "model.pt")
-    assert ck.pose_net is not None and ck.pose_config["centre_votes"] and ck.pose_config["tau"] == 0.3
+    assert ck.pose_net is not None and ck.pose_config["centre_votes"] and ck.pose_config["tau"] == tau
     assert ck.pose["class_ids"] == ck.class_ids
     # more stage-2 steps: resume continues stage 2 only (stage 1 is complete)
     two = (out / "two_stage.yaml").read_text().replace("steps: 3", "steps: 5")
@@ -190,7 +222,7 @@ def test_two_stage_train_resume_eval_predict(labels, tmp_path):
                              "--frames", "2"])
     assert r.exit_code == 0, r.output
     s = json.loads((rep / "report.json").read_text())
-    assert s["config"]["centre_votes"] and s["config"]["tau"] == 0.3 and "stage2" in s["timing_ms"]
+    assert s["config"]["centre_votes"] and s["config"]["tau"] == tau and "stage2" in s["timing_ms"]
     ds = labels.parent / "ds" / "train_pbr" / "000000" / "000001"
     r = run.invoke(det_app, ["predict", str(out / "model.pt"), str(ds), "--out", str(tmp_path / "pred"), "--icp"])
     assert r.exit_code == 0, r.output
