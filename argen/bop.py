@@ -515,6 +515,11 @@ def list_scenes(root: str | os.PathLike, split: str) -> list[int]:
     return ids
 
 
+def load_scene_camera(path: str | os.PathLike) -> dict[int, FrameCamera]:
+    """Read one ``scene_camera.json`` into ``{im_id: FrameCamera}`` (metres)."""
+    return parse_scene_camera(_scene_json(Path(path), "scene_camera.json"), str(path))
+
+
 def load_scene(root: str | os.PathLike, split: str, scene_id: int) -> BopScene:
     """Read and check the JSON files of one scene."""
     d = scene_dir(root, split, scene_id)

@@ -124,10 +124,21 @@ def load_ply(path: Path, max_points: int = MAX_POINTS, seed: int = 0) -> PointIn
     return PointInput(feats, view_camera(feats[:, :3]), None, PLY_VIEW, str(path))
 
 
+def bop_frame_camera(depth_png: Path):
+    """The ``bop.FrameCamera`` of a depth PNG inside a BOP scene (``SCENE/depth/IMID.png`` with the image in
+    ``SCENE/scene_camera.json``), or None when it is not one."""
+    scene_cam = depth_png.parent.parent / "scene_camera.json"
+    if depth_png.parent.name != "depth" or not depth_png.stem.isdigit() or not scene_cam.is_file():
+        return None
+    with argen_errors():
+        return bop.load_scene_camera(scene_cam).get(int(depth_png.stem))
+
+
 def load_input(spec: str, K: str | None = None, depth_scale: float | None = None, camera: Path | None = None,
                rgb: Path | None = None, max_points: int = MAX_POINTS, seed: int = 0) -> PointInput:
-    """The input named on the command line: ``*.ply``, a depth ``*.png`` (with --K or camera.json), or a BOP
-    frame ``SPLIT_DIR/SCENE_ID/IM_ID``."""
+    """The input named on the command line: ``*.ply``, a depth ``*.png`` (intrinsics from --K, --camera, the
+    image's own entry in its BOP scene's scene_camera.json, or a camera.json found near it), or a BOP frame
+    ``SPLIT_DIR/SCENE_ID/IM_ID``."""
     p = Path(spec)
     if p.suffix.lower() == ".ply":
         if not p.is_file():
@@ -139,9 +150,12 @@ def load_input(spec: str, K: str | None = None, depth_scale: float | None = None
         scale = 1.0
         if K is not None:
             Km = parse_K(K)
+        elif camera is None and (frame_cam := bop_frame_camera(p)) is not None:
+            Km, scale = frame_cam.K, frame_cam.depth_scale
         else:
-            cam = camera or next((c for c in (p.parent / bop.CAMERA_FILE, p.parent.parent / bop.CAMERA_FILE)
-                                  if c.is_file()), None)
+            # a camera.json beside the image, one folder up, or at the root of a BOP dataset (DATASET/SPLIT/SCENE/depth)
+            near = [p.parent, p.parent.parent] + ([p.parents[3]] if len(p.parents) > 3 else [])
+            cam = camera or next((d / bop.CAMERA_FILE for d in near if (d / bop.CAMERA_FILE).is_file()), None)
             if cam is None:
                 raise DetectorError(f"{p}: give the intrinsics with --K fx,fy,cx,cy or --camera camera.json")
             with argen_errors():

@@ -164,6 +164,10 @@ def test_predict_on_bop_frame_depth_png_and_ply(dataset, tmp_path):
     inp2 = load_input(str(depth_png), K=f"{K[0, 0]},{K[1, 1]},{K[0, 2]},{K[1, 2]}", depth_scale=cam.depth_scale,
                       rgb=bop.rgb_path(ds, "train_pbr", 0, im_id))
     np.testing.assert_allclose(inp2.features, inp.features, atol=1e-6)
+    # ... and without intrinsics: a depth PNG inside a BOP scene takes its image's entry of scene_camera.json
+    inp4 = load_input(str(depth_png))
+    np.testing.assert_allclose(inp4.K, K)
+    np.testing.assert_allclose(inp4.features[:, [0, 1, 2, 6, 7, 8]], inp.features[:, [0, 1, 2, 6, 7, 8]], atol=1e-6)
 
     # ... and as a PLY cloud (metres, camera frame), drawn over a splat of the cloud
     pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(inp.features[:, :3].astype(np.float64)))
