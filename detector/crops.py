@@ -28,7 +28,9 @@ class CropConfig:
     with fewer labelled points; roll_deg: augmentation rolls a crop about the camera ray by up to this many
     degrees (a camera's roll about its view direction varies little in a capture: capture-sim draws it with a 5
     degree spread, a hand-held sensor also stays near upright, and the support plane below an object is a cue
-    the network should keep).
+    the network should keep); colour: the colour augmentation, "light" (a gain of 0.8-1.2 and noise on the
+    normalised colours) or "camera" (:func:`camera_colour`: exposure, white balance, gamma, sometimes grey or no
+    colour at all, as real cameras differ from the renderer).
     """
 
     radius: float = 0.7
@@ -39,6 +41,7 @@ class CropConfig:
     min_visib: float = 0.1
     min_object_points: int = 30
     roll_deg: float = 15.0
+    colour: str = "light"
 
     def to_dict(self) -> dict:
         return dict(self.__dict__)
@@ -112,6 +115,31 @@ def roll_about_ray(points: np.ndarray, centre: np.ndarray, angle: float) -> tupl
     return (np.asarray(points, np.float64) - centre) @ Q.T + centre, Q
 
 
+#: camera_colour's ranges: exposure gain, per-channel white-balance gain, gamma, and the chances of a grey crop and
+#: of one without colour.
+EXPOSURE = (0.5, 1.6)
+WHITE_BALANCE = 0.15
+GAMMA = (0.6, 1.6)
+P_GREY, P_NO_COLOUR = 0.1, 0.05
+
+
+def camera_colour(rgb: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    """Colours as another camera might give them: ``(rgb * exposure * white_balance) ** gamma`` plus 2 % noise, with
+    the exposure and gamma drawn log-uniformly from :data:`EXPOSURE` and :data:`GAMMA`; with chance
+    :data:`P_GREY` the crop is grey, with :data:`P_NO_COLOUR` all zeros (a depth-only input).
+
+    rgb: (n,3) in [0, 1]. Returns (n,3) float32 in [0, 1].
+    """
+    u = rng.random()
+    if u < P_NO_COLOUR:
+        return np.zeros_like(rgb, dtype=np.float32)
+    gain = np.exp(rng.uniform(*np.log(EXPOSURE))) * rng.uniform(1 - WHITE_BALANCE, 1 + WHITE_BALANCE, 3)
+    out = np.clip(np.asarray(rgb, np.float64) * gain, 0.0, 1.0) ** np.exp(rng.uniform(*np.log(GAMMA)))
+    if u < P_NO_COLOUR + P_GREY:
+        out = np.repeat(out.mean(1, keepdims=True), 3, axis=1)
+    return np.clip(out + rng.normal(0.0, 0.02, out.shape), 0.0, 1.0).astype(np.float32)
+
+
 def training_crop(frame, g: int, diameter: float, sym_transforms: np.ndarray, cfg: CropConfig,
                   rng: np.random.Generator, normalisation: dict, augment: bool = False) -> dict | None:
     """One training crop around instance ``g`` of ``frame`` (an ``argen.h5.FrameLabels``), or None (too few points).
@@ -119,7 +147,8 @@ def training_crop(frame, g: int, diameter: float, sym_transforms: np.ndarray, cf
     Returns {"features": (n,9) float32 network input, "fg": (n,) float32 1 on the instance's points,
     "coords": (S,n,3) float32 model coordinates (diameters) of every point under each symmetry (meaningful on
     foreground points only), "centre": (3,) metres}. With ``augment`` the crop is rolled about the camera ray by up
-    to ``cfg.roll_deg`` (model coordinates do not change), colour is scaled and points get 1 mm noise.
+    to ``cfg.roll_deg`` (model coordinates do not change), colour is changed (``cfg.colour``) and points get 1 mm
+    noise.
     """
     inst = frame.instances
     xyz = np.asarray(frame.features[:, :3], np.float64)
@@ -137,6 +166,10 @@ def training_crop(frame, g: int, diameter: float, sym_transforms: np.ndarray, cf
         p = p + rng.normal(0.0, 0.001, p.shape)
         feats[:, :3] = ((p - centre) / radius).astype(np.float32)
         feats[:, 6:9] = (feats[:, 6:9] @ Q.T.astype(np.float32))
-        feats[:, 3:6] = feats[:, 3:6] * np.float32(rng.uniform(0.8, 1.2)) + rng.normal(0, 0.1, 3).astype(np.float32)
+        if cfg.colour == "camera":
+            rgb = camera_colour(np.asarray(frame.features)[rows, 3:6], rng)
+            feats[:, 3:6] = (rgb - normalisation["rgb_mean"]) / normalisation["rgb_std"]
+        else:
+            feats[:, 3:6] = feats[:, 3:6] * np.float32(rng.uniform(0.8, 1.2)) + rng.normal(0, 0.1, 3).astype(np.float32)
     return {"features": feats, "fg": fg.astype(np.float32),
             "coords": symmetry_targets(coords, sym_transforms, diameter), "centre": centre}

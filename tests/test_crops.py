@@ -63,6 +63,33 @@ def test_training_crop_targets_are_the_instance_and_its_model_coordinates(labels
             assert np.median(near) < 0.01
 
 
+def test_camera_colour_augmentation_spans_real_camera_changes(labels):
+    """The "camera" colour augmentation: seeded, in [0, 1], exposure below 0.7 and above 1.3 both drawn, some crops
+    grey and some without colour; a training crop with it keeps the points and targets of the geometry."""
+    from detector.crops import camera_colour
+
+    rng = np.random.default_rng(0)
+    rgb = rng.uniform(0.1, 0.8, (200, 3)).astype(np.float32)
+    draws = [camera_colour(rgb, np.random.default_rng(k)) for k in range(300)]
+    assert np.array_equal(draws[7], camera_colour(rgb, np.random.default_rng(7)))
+    assert all(d.dtype == np.float32 and d.shape == rgb.shape and d.min() >= 0 and d.max() <= 1 for d in draws)
+    ratio = np.array([d.mean() / rgb.mean() for d in draws])
+    assert (ratio < 0.7).sum() > 10 and (ratio > 1.3).sum() > 10
+    zeros = sum(not d.any() for d in draws)
+    grey = sum(d.any() and np.abs(d - d.mean(1, keepdims=True)).max() < 0.1 for d in draws)
+    assert 3 <= zeros <= 30 and 10 <= grey <= 60
+    with LabelFile(labels) as lf:
+        tab, f = lf.objects, lf.frame(0)
+        g = int(np.argmax(f.instances.num_points))
+        m = tab.index(int(f.instances.obj_id[g]))
+        args = (f, g, float(tab.diameters[m]), tab.sym_transforms[m])
+        plain = training_crop(*args, CropConfig(roll_deg=0.0), np.random.default_rng(3), NORMALISATION, augment=True)
+        cam = training_crop(*args, CropConfig(roll_deg=0.0, colour="camera"), np.random.default_rng(3), NORMALISATION,
+                            augment=True)
+    assert np.array_equal(plain["fg"], cam["fg"]) and np.array_equal(plain["coords"], cam["coords"])
+    assert not np.allclose(plain["features"][:, 3:6], cam["features"][:, 3:6])
+
+
 def test_symmetry_targets_are_the_coordinates_under_each_equivalent_pose():
     rng = np.random.default_rng(0)
     S = np.tile(np.eye(4), (2, 1, 1))
