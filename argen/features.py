@@ -22,7 +22,6 @@ JUMP_REL = 0.03  # a neighbour whose depth differs by more than this fraction of
 BOX_EDGES = [(k, k ^ b) for k in range(8) for b in (1, 2, 4) if k < k ^ b]
 
 
-
 def backproject(rows: np.ndarray, cols: np.ndarray, z: np.ndarray, K: np.ndarray) -> np.ndarray:
     """Camera-frame points of pixels. rows, cols: (N,) int; z: (N,) metres; K: (3,3). Returns (N,3) float64."""
     x = (cols - K[0, 2]) * z / K[0, 0]

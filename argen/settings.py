@@ -28,9 +28,10 @@ from argen.errors import ArgenError
 Check = Callable[[Any, str], None]
 
 
-def _unknown(key: str, known, where: str) -> ArgenError:
+def _did_you_mean(key: str, known) -> str:
+    """`` (did you mean 'K'?)`` for the known name nearest to ``key``, or "" when none is near."""
     close = difflib.get_close_matches(str(key), list(known), n=1)
-    return ArgenError(f"{where}: unknown key '{key}'" + (f" (did you mean '{close[0]}'?)" if close else ""))
+    return f" (did you mean '{close[0]}'?)" if close else ""
 
 
 def from_dict(cls: type, data: Any, where: str = "config", check: Check | None = None) -> Any:
@@ -45,7 +46,7 @@ def from_dict(cls: type, data: Any, where: str = "config", check: Check | None =
     kwargs = {}
     for key, value in data.items():
         if key not in fields:
-            raise _unknown(key, fields, where)
+            raise ArgenError(f"{where}: unknown key '{key}'" + _did_you_mean(key, fields))
         kwargs[key] = _coerce(hints[key], value, f"{where}: {key}", check)
     obj = cls(**kwargs)
     if check is not None:
@@ -134,8 +135,7 @@ def set_dotted(data: dict, key: str, value: Any, open_sections: tuple[str, ...] 
             raise ArgenError(f"unknown option '{key}'")
         node = node[p]
     if parts[-1] not in node and parts[0] not in open_sections:
-        close = difflib.get_close_matches(parts[-1], list(node), n=1)
-        raise ArgenError(f"unknown option '{key}'" + (f" (did you mean '{close[0]}'?)" if close else ""))
+        raise ArgenError(f"unknown option '{key}'" + _did_you_mean(parts[-1], node))
     node[parts[-1]] = list(value) if isinstance(value, tuple) else value
 
 

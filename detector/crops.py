@@ -64,6 +64,12 @@ def sample_crop(rows: np.ndarray, num_points: int, rng: np.random.Generator) -> 
     return np.concatenate([rows, rows[rng.choice(len(rows), num_points - len(rows), replace=True)]])
 
 
+def normalised_colour(rgb: np.ndarray, normalisation: dict) -> np.ndarray:
+    """Network colour input: ``(rgb - rgb_mean) / rgb_std``. rgb: (n,3) in [0, 1]; normalisation: {"rgb_mean",
+    "rgb_std"} (``detector.data.NORMALISATION``). Returns (n,3) float32."""
+    return ((rgb - normalisation["rgb_mean"]) / normalisation["rgb_std"]).astype(np.float32)
+
+
 def crop_input(features: np.ndarray, rows: np.ndarray, centre: np.ndarray, radius: float,
                normalisation: dict) -> np.ndarray:
     """Network input of a crop: (n, 9) float32 ``[(p - centre) / radius, colour (normalised), normal]``.
@@ -72,7 +78,7 @@ def crop_input(features: np.ndarray, rows: np.ndarray, centre: np.ndarray, radiu
     metres; radius: metres; normalisation: {"rgb_mean", "rgb_std"} (``detector.data.NORMALISATION``).
     """
     out = np.array(np.asarray(features)[rows], dtype=np.float32, copy=True)
-    out[:, 3:6] = (out[:, 3:6] - normalisation["rgb_mean"]) / normalisation["rgb_std"]
+    out[:, 3:6] = normalised_colour(out[:, 3:6], normalisation)
     out[:, :3] = (out[:, :3] - np.asarray(centre, np.float32)) / np.float32(radius)
     return out
 
@@ -168,7 +174,7 @@ def training_crop(frame, g: int, diameter: float, sym_transforms: np.ndarray, cf
         feats[:, 6:9] = (feats[:, 6:9] @ Q.T.astype(np.float32))
         if cfg.colour == "camera":
             rgb = camera_colour(np.asarray(frame.features)[rows, 3:6], rng)
-            feats[:, 3:6] = (rgb - normalisation["rgb_mean"]) / normalisation["rgb_std"]
+            feats[:, 3:6] = normalised_colour(rgb, normalisation)
         else:
             feats[:, 3:6] = feats[:, 3:6] * np.float32(rng.uniform(0.8, 1.2)) + rng.normal(0, 0.1, 3).astype(np.float32)
     return {"features": feats, "fg": fg.astype(np.float32),

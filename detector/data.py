@@ -20,7 +20,7 @@ import numpy as np
 import torch
 
 from argen.h5 import LabelFile
-from detector.crops import training_crop
+from detector.crops import normalised_colour, training_crop
 from detector.errors import DetectorError, argen_errors
 from detector.ops import precompute_indices
 
@@ -69,7 +69,7 @@ def normalise_features(features: np.ndarray, normalisation: dict[str, float] | N
     """
     norm = NORMALISATION if normalisation is None else normalisation
     out = np.array(features, dtype=np.float32, copy=True)
-    out[:, 3:6] = (out[:, 3:6] - norm["rgb_mean"]) / norm["rgb_std"]
+    out[:, 3:6] = normalised_colour(out[:, 3:6], norm)
     return out
 
 

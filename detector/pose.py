@@ -178,6 +178,18 @@ def kabsch(src: np.ndarray, dst: np.ndarray, weights: np.ndarray | None = None) 
     return R, cd - R @ cs
 
 
+def _proper_rotations(M: np.ndarray) -> np.ndarray:
+    """The rotations R (H,3,3) that best map the centred source onto the centred target of H cross-covariances
+    ``M[h] = sum (s - cs)(d - cd)^T`` (H,3,3): ``V diag(1, 1, det(V U^T)) U^T`` from the SVD, never a reflection."""
+    U, _, Vt = np.linalg.svd(M)
+    d = np.sign(np.linalg.det(np.einsum("hji,hkj->hik", Vt, U)))
+    d[d == 0] = 1.0
+    D = np.zeros((len(M), 3, 3))
+    D[:, 0, 0] = D[:, 1, 1] = 1.0
+    D[:, 2, 2] = d
+    return np.einsum("hji,hjk,hlk->hil", Vt, D, U)
+
+
 def kabsch_batch(src: np.ndarray, dst: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Unweighted Kabsch for H point sets at once: ``dst[h] ~ R[h] @ src[h] + t[h]``, never a reflection.
 
@@ -185,14 +197,7 @@ def kabsch_batch(src: np.ndarray, dst: np.ndarray) -> tuple[np.ndarray, np.ndarr
     """
     src, dst = np.asarray(src, np.float64), np.asarray(dst, np.float64)
     cs, cd = src.mean(1), dst.mean(1)
-    M = np.einsum("hmi,hmj->hij", src - cs[:, None], dst - cd[:, None])
-    U, _, Vt = np.linalg.svd(M)
-    d = np.sign(np.linalg.det(np.einsum("hji,hkj->hik", Vt, U)))
-    d[d == 0] = 1.0
-    D = np.zeros((len(src), 3, 3))
-    D[:, 0, 0] = D[:, 1, 1] = 1.0
-    D[:, 2, 2] = d
-    R = np.einsum("hji,hjk,hlk->hil", Vt, D, U)
+    R = _proper_rotations(np.einsum("hmi,hmj->hij", src - cs[:, None], dst - cd[:, None]))
     return R, cd - np.einsum("hij,hj->hi", R, cs)
 
 
@@ -207,14 +212,7 @@ def weighted_kabsch_shared(src: np.ndarray, dst: np.ndarray, weights: np.ndarray
     w = w / w.sum(1, keepdims=True)
     cs, cd = w @ src, w @ dst  # (K,3)
     M = np.einsum("kn,ni,nj->kij", w, src, dst) - cs[:, :, None] * cd[:, None, :]  # sum w (s - cs)(d - cd)^T
-    U, _, Vt = np.linalg.svd(M)
-    V, Ut = np.transpose(Vt, (0, 2, 1)), np.transpose(U, (0, 2, 1))
-    d = np.sign(np.linalg.det(V @ Ut))
-    d[d == 0] = 1.0
-    D = np.zeros((len(w), 3, 3))
-    D[:, 0, 0] = D[:, 1, 1] = 1.0
-    D[:, 2, 2] = d
-    R = V @ D @ Ut
+    R = _proper_rotations(M)
     return R, cd - np.einsum("kij,kj->ki", R, cs)
 
 
