@@ -34,6 +34,7 @@ from detector.pose import (
     nms,
     ransac_kabsch,
     refine,
+    support_radius,
     surface_support,
 )
 
@@ -124,14 +125,15 @@ class CropPoser:
     detections with stage-2 poses, scores, ``points`` = the crop's foreground rows of ``features`` (ICP uses
     them) and ``alternatives`` = the crop's other verified hypotheses, best fit first (ICP may start from them). A detection whose crop yields no pose is dropped. Adds "stage2" seconds. The score is the share of the
     foreground points that the model surface under the pose explains to within ``support_distance`` of the
-    diameter (:func:`detector.pose.surface_support`): it tells wrong poses and false detections from right ones
+    diameter, but at least ``support_floor`` metres (:func:`detector.pose.surface_support`): it tells wrong poses and false detections from right ones
     far better than vote or inlier shares (measured on a validation capture).
     """
 
     def __init__(self, net, class_ids: list[int], objects, crop_cfg: CropConfig, normalisation: dict,
-                 cfg: CropPoseConfig | None = None, device="cpu", seed: int = 0, support_distance: float = 0.02):
+                 cfg: CropPoseConfig | None = None, device="cpu", seed: int = 0, support_distance: float = 0.02,
+                 support_floor: float = 0.0):
         self.net, self.class_ids, self.objects = net, list(class_ids), objects
-        self.support_distance = support_distance
+        self.support_distance, self.support_floor = support_distance, support_floor
         self.crop_cfg, self.normalisation, self.cfg = crop_cfg, normalisation, cfg or CropPoseConfig()
         self.device, self.seed = device, seed
 
@@ -172,7 +174,7 @@ class CropPoser:
                 continue
             R, t, fg, others = r
             tree, normals = self.objects.surface(d.obj_id)
-            dist = self.support_distance * self.objects.diameters[d.obj_id]
+            dist = support_radius(self.support_distance, self.support_floor, self.objects.diameters[d.obj_id])
             score = surface_support(xyz[fg], tree, normals, R, t, dist)
             cps = self.objects.control_points[d.obj_id] @ R.T + t
             out.append(replace(d, R=R, t=t, score=score, control_points=cps, points=fg,
@@ -324,5 +326,6 @@ def checkpoint_poser(ckpt, objects: ObjectInfo, device: str = "cpu", seed: int =
         return None
     p = ckpt.pose
     support = float(ckpt.pose_config.get("support_distance", PoseConfig.support_distance))
+    floor = float(ckpt.pose_config.get("support_floor", PoseConfig.support_floor))
     return CropPoser(ckpt.pose_net, p["class_ids"], objects, CropConfig.from_dict(p["crop_config"]),
-                     p["normalisation"], CropPoseConfig(**(p.get("infer_config") or {})), device, seed, support)
+                     p["normalisation"], CropPoseConfig(**(p.get("infer_config") or {})), device, seed, support, floor)

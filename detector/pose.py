@@ -52,8 +52,11 @@ class PoseConfig:
     min_score: final detections scoring less are dropped (with ICP, by their score after ICP);
     min_score_unrefined: the threshold of the unrefined detections (None: ``min_score``); a two-stage detection's
     support before ICP is lower than after it, so the two get thresholds of their own;
-    support_distance: a two-stage detection's score is the share of its points within this fraction of the diameter of the model surface under its pose
-    (:func:`surface_support`), recomputed after ICP.
+    support_distance: a two-stage detection's score is the share of its points within this fraction of the
+    diameter of the model surface under its pose (:func:`surface_support`), recomputed after ICP;
+    support_floor: metres, that distance is at least this much (:func:`support_radius`): a depth sensor's error
+    does not shrink with the object, and 2 % of a small object's diameter (2 mm for the ape) is below a Kinect
+    v1's median depth error near 1 m (2.4 mm), so right poses of small objects would score low.
     """
 
     tau: float = 0.8
@@ -71,6 +74,7 @@ class PoseConfig:
     icp_starts: int = 8
     icp_min_gain: float = 0.001
     support_distance: float = 0.02
+    support_floor: float = 0.004
     propagate: float = 0.01
     owner_votes: int = 3
     centre_votes: bool = False
@@ -336,6 +340,12 @@ def fit_rms(residuals: np.ndarray, trim: float) -> float:
     return float(np.sqrt(np.mean(r[:k] ** 2))) if k else float("inf")
 
 
+def support_radius(fraction: float, floor: float, diameter: float) -> float:
+    """The distance (metres) within which a point counts as explained by the model surface: ``fraction`` of the
+    ``diameter`` (metres), but at least ``floor`` metres (the sensor's noise)."""
+    return max(fraction * diameter, floor)
+
+
 def surface_support(points: np.ndarray, model_tree, model_normals: np.ndarray, R: np.ndarray, t: np.ndarray,
                     distance: float) -> float:
     """Share of the points (S,3) camera frame, metres, within ``distance`` metres of the model surface under
@@ -505,7 +515,8 @@ def refine(detections: list[Detection], xyz: np.ndarray, objects: ObjectInfo, cf
         score = d.score
         if d.points is not None:  # a two-stage detection: its score is the support of its points, at the new pose
             tree, normals = objects.surface(d.obj_id)
-            score = surface_support(pts, tree, normals, R, t, cfg.support_distance * objects.diameters[d.obj_id])
+            score = surface_support(pts, tree, normals, R, t,
+                                    support_radius(cfg.support_distance, cfg.support_floor, objects.diameters[d.obj_id]))
         out.append(replace(d, R=R, t=t, score=score, refined=ok, icp="accepted" if ok else "rejected", fit_rms=rms))
     if timings is not None:
         timings["icp"] = timings.get("icp", 0.0) + time.perf_counter() - t0
