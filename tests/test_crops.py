@@ -11,8 +11,16 @@ from typer.testing import CliRunner
 from argen.cli.app import app as argen_app
 from argen.h5 import LabelFile
 from argen.label import LabelConfig, LabelRequest, run_label
-from detector.cropnet import CropNet, CropNetConfig, crop_loss
-from detector.crops import CropConfig, ball_rows, model_coordinates, roll_about_ray, symmetry_targets, training_crop
+from detector.cropnet import CropNet, CropNetConfig, EdgeConv, crop_loss
+from detector.crops import (
+    CropConfig,
+    ball_rows,
+    jittered_centre,
+    model_coordinates,
+    roll_about_ray,
+    symmetry_targets,
+    training_crop,
+)
 from detector.data import NORMALISATION, CropDataset, collate_crops
 from detector.pose import kabsch_batch, ransac_kabsch
 
@@ -30,7 +38,7 @@ def labels(tmp_path_factory):
 
 
 def test_training_crop_targets_are_the_instance_and_its_model_coordinates(labels):
-    cfg = CropConfig(jitter=0.0)
+    cfg = CropConfig(centre_jitter=0.0)
     with LabelFile(labels) as lf:
         tab = lf.objects
         f = lf.frame(0)
@@ -103,6 +111,39 @@ def test_symmetry_targets_are_the_coordinates_under_each_equivalent_pose():
     # under the equivalent pose T @ S the same camera points have the coordinates tg[1]
     R2, t2 = R @ S[1, :3, :3], R @ S[1, :3, 3] + t
     assert np.allclose((tg[1] * dia) @ R2.T + t2, p, atol=1e-6)
+
+
+def test_crop_centre_jitter_scales_with_the_diameter_and_is_clipped():
+    cfg = CropConfig(centre_jitter=0.1, centre_jitter_clip=0.25)
+    c = np.array([0.1, -0.2, 0.9])
+    for dia in (0.1, 0.26):
+        rng = np.random.default_rng(5)
+        off = np.array([jittered_centre(c, dia, cfg, rng) for _ in range(4000)]) - c
+        assert np.allclose(off.std(0), 0.1 * dia, rtol=0.08)  # a larger object gets a larger centre error
+        assert np.abs(off).max() <= 0.25 * dia + 1e-12
+        assert np.abs(off).max() > 0.2 * dia  # the clip is reached, not far beyond the tail
+    # model files written when the jitter was in metres still load: those keys shaped training only
+    old = {**CropConfig().to_dict(), "jitter": 0.012, "jitter_clip": 0.03}
+    del old["centre_jitter"], old["centre_jitter_clip"]
+    assert CropConfig.from_dict(old) == CropConfig(**{k: v for k, v in old.items() if "jitter" not in k})
+
+
+@pytest.mark.parametrize("before", [True, False])
+def test_edge_convolution_equals_its_definition_per_point(before):
+    torch.manual_seed(0)
+    conv = EdgeConv(5, 7, norm_before_max=before)
+    x, idx = torch.randn(2, 9, 5), torch.randint(0, 9, (2, 9, 4))
+    out = conv(x, idx)
+    W1, b1, W2 = conv.self_lin.weight, conv.self_lin.bias, conv.nb_lin.weight
+    for bi in range(2):
+        for i in range(9):
+            edges = torch.stack([W1 @ x[bi, i] + b1 + W2 @ (x[bi, j] - x[bi, i]) for j in idx[bi, i]])  # (k, 7)
+            ref = torch.relu(conv.norm(edges)).max(0).values if before else torch.relu(conv.norm(edges.max(0).values))
+            assert torch.allclose(out[bi, i], ref, atol=1e-5)
+    # a model file without the option normalised before the max
+    legacy = CropNetConfig().to_dict()
+    del legacy["norm_before_max"]
+    assert CropNetConfig.from_dict(legacy).norm_before_max and not CropNetConfig().norm_before_max
 
 
 def test_roll_about_the_ray_keeps_the_centre_and_model_coordinates():
