@@ -20,7 +20,7 @@ import numpy as np
 import torch
 
 from argen.h5 import LabelFile
-from detector.crops import normalised_colour, training_crop
+from detector.crops import camera_colour, normalised_colour, training_crop
 from detector.errors import DetectorError, argen_errors
 from detector.ops import precompute_indices
 
@@ -79,10 +79,12 @@ def rot_z(angle: float) -> np.ndarray:
     return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]], dtype=np.float32)
 
 
-def augment(features: np.ndarray, control_points: np.ndarray, rng: np.random.Generator
+def augment(features: np.ndarray, control_points: np.ndarray, rng: np.random.Generator, colour: str = "light"
             ) -> tuple[np.ndarray, np.ndarray]:
     """Light augmentation: a small roll about the camera axis (points, normals and labels alike), xyz jitter,
-    brightness and colour noise.
+    and a colour change: ``colour`` "light" is a brightness gain of +-15 % and colour noise, "camera" the whole
+    frame's colours as another camera would give them (:func:`detector.crops.camera_colour`: exposure, white
+    balance, gamma, sometimes grey or none).
 
     features: (N, 9) float32, colour in [0, 1]; control_points: (N, 9, 3) float32 metres (zeros = background).
     Returns new arrays of the same shapes; background control points stay zero.
@@ -94,8 +96,11 @@ def augment(features: np.ndarray, control_points: np.ndarray, rng: np.random.Gen
     cps = (control_points @ R.T).astype(np.float32)
     jitter = np.clip(rng.normal(0.0, JITTER_SIGMA, (len(out), 3)), -JITTER_CLIP, JITTER_CLIP)
     out[:, 0:3] += jitter.astype(np.float32)
-    gain = rng.uniform(1.0 - BRIGHTNESS, 1.0 + BRIGHTNESS)
-    out[:, 3:6] = np.clip(out[:, 3:6] * gain + rng.normal(0.0, COLOUR_SIGMA, (len(out), 3)), 0.0, 1.0)
+    if colour == "camera":
+        out[:, 3:6] = camera_colour(out[:, 3:6], rng)
+    else:
+        gain = rng.uniform(1.0 - BRIGHTNESS, 1.0 + BRIGHTNESS)
+        out[:, 3:6] = np.clip(out[:, 3:6] * gain + rng.normal(0.0, COLOUR_SIGMA, (len(out), 3)), 0.0, 1.0)
     return out, cps
 
 
@@ -207,12 +212,14 @@ class PointDataset(FrameSource):
     int64 (0 = background, c = ``class_ids[c - 1]``), ``instance`` (N,) int64 (-1 = background),
     ``control_points`` (N, 9, 3) float32 metres, the :func:`detector.ops.precompute_indices` arrays and
     ``frame`` (int). The label file is opened lazily in each process (never pickled into workers).
-    ``precompute=False`` leaves the indices out (the model then computes them on its device).
+    ``precompute=False`` leaves the indices out (the model then computes them on its device); ``colour`` is the
+    colour augmentation of :func:`augment`.
     """
 
     def __init__(self, path: str | Path, model_cfg, num_points: int, augment: bool = False, seed: int = 0,
-                 class_ids: Sequence[int] | None = None, precompute: bool = True):
+                 class_ids: Sequence[int] | None = None, precompute: bool = True, colour: str = "light"):
         self.model_cfg = model_cfg
+        self.colour = colour
         self.specs = list(model_cfg.sampling_specs())
         self.num_points = int(num_points)
         self.precompute = bool(precompute)
@@ -230,7 +237,7 @@ class PointDataset(FrameSource):
         instance = np.where(cls > 0, np.asarray(frame.instance)[rows], -1).astype(np.int64)
         cps = np.where((cls > 0)[:, None, None], cps, 0.0).astype(np.float32)
         if self.augment:
-            feats, cps = augment(feats, cps, rng)
+            feats, cps = augment(feats, cps, rng, self.colour)
         item = sampling_indices(feats[:, :3], self.specs) if self.precompute else {}
         item.update(features=torch.from_numpy(normalise_features(feats)), cls=torch.from_numpy(cls),
                     instance=torch.from_numpy(instance), control_points=torch.from_numpy(cps),

@@ -72,6 +72,7 @@ class TrainConfig:
     seg_pretrain_steps: int = 0  # first steps train the segmentation head only (the paper's pre-training)
     loss: LossConfig = field(default_factory=LossConfig)
     augment: bool = True
+    colour: str = "light"  # colour augmentation: light (brightness +-15 %) | camera (detector.crops.camera_colour)
     class_ids: list[int] | None = None  # object ids to learn; None = all objects of the training file
     checkpoint_every: int = 200
     val_every: int = 200
@@ -151,6 +152,7 @@ def validate_config(cfg: TrainConfig) -> None:
         (cfg.num_workers >= 0 and cfg.val_frames >= 0, "num_workers and val_frames must be >= 0"),
         (cfg.device in ("auto", "cpu", "cuda"), "device must be auto, cpu or cuda"),
         (cfg.indices in ("auto", "loader", "model"), "indices must be auto, loader or model"),
+        (cfg.colour in ("light", "camera"), "colour must be light or camera"),
     ]
     for ok, msg in checks:
         if not ok:
@@ -406,7 +408,7 @@ def _train(cfg: TrainConfig, train_path: str | Path, out_dir: str | Path, val_pa
         device = torch.device("cuda", ctx.local_rank)
     use_indices = cfg.indices == "loader" or (cfg.indices == "auto" and device.type == "cpu")
     model_cfg = build_model_config(cfg)
-    ds = PointDataset(train_path, model_cfg, cfg.num_points, augment=cfg.augment, seed=cfg.seed,
+    ds = PointDataset(train_path, model_cfg, cfg.num_points, augment=cfg.augment, seed=cfg.seed, colour=cfg.colour,
                       class_ids=cfg.class_ids, precompute=use_indices)
     val_ds = None
     if val_path is not None and ctx.is_main:

@@ -171,6 +171,7 @@ from pykdtree.kdtree import KDTree  # noqa: E402
 
 from detector.data import NORMALISATION, PointDataset, augment, class_index, collate, inference_batch, sample_rows  # noqa: E402
 from detector.errors import DetectorError  # noqa: E402
+from detector.train import make_config  # noqa: E402
 
 torch.set_num_threads(1)
 NUM_POINTS = 1024
@@ -283,6 +284,29 @@ def test_augmentation_moves_points_and_labels_together(frames):
     dot1 = np.sum(f2[obj, 6:9] * (c2[obj, 8] - f2[obj, :3]), axis=1)
     assert np.abs(dot1 - dot0).max() <= 0.005 * np.sqrt(3) + 1e-6
     assert f2[:, 3:6].min() >= 0 and f2[:, 3:6].max() <= 1 and not np.allclose(f2[:, 3:6], feats[:, 3:6])
+
+
+def test_camera_colour_augmentation_changes_a_whole_frame_like_another_camera(frames):
+    feats, sem, inst, cps = frames[1]
+    ratios, grey, none = [], 0, 0
+    for seed in range(60):
+        f_light, c_light = augment(feats, cps, np.random.default_rng(seed))
+        f_cam, c_cam = augment(feats, cps, np.random.default_rng(seed), colour="camera")
+        # the geometry is the light augmentation's: only the colours differ
+        np.testing.assert_array_equal(f_cam[:, [0, 1, 2, 6, 7, 8]], f_light[:, [0, 1, 2, 6, 7, 8]])
+        np.testing.assert_array_equal(c_cam, c_light)
+        rgb = f_cam[:, 3:6]
+        assert rgb.min() >= 0 and rgb.max() <= 1
+        if not rgb.any():
+            none += 1
+        elif np.allclose(rgb, rgb.mean(1, keepdims=True), atol=0.1):
+            grey += 1
+        else:
+            ratios.append(rgb.mean() / feats[:, 3:6].mean())
+    assert 0 < none < 10 and 0 < grey < 15  # some depth-only and grey frames, most in colour
+    assert min(ratios) < 0.75 and max(ratios) > 1.25  # spans exposures x0.7 and x1.3 (light stays within 15 %)
+    with pytest.raises(DetectorError, match="colour must be light or camera"):
+        make_config("cpu", {"colour": "sepia"})
 
 
 def test_collate_stacks_items(h5_path):
