@@ -44,6 +44,8 @@ class CropPoseConfig:
     """Pose-from-crop options. fg_threshold: foreground probability for a correspondence; inlier: RANSAC
     inlier distance as a fraction of the diameter; hypotheses: RANSAC hypotheses; min_fg: fewest foreground
     points for a pose; recentre: crop again around the first pose's centre and redo it this many times;
+    recentre_min_shift: from the third crop on, only crops whose centre moved by more than this fraction of the
+    diameter in the previous pass are cut again (the others have settled; 0 = all of them);
     verify: refit this many of the best RANSAC hypotheses and keep the one whose model surface fits the crop's
     foreground points best (trimmed point-to-plane RMS over the best ``verify_trim`` share, as ICP's acceptance
     test); 1 keeps RANSAC's own choice."""
@@ -53,6 +55,7 @@ class CropPoseConfig:
     hypotheses: int = 128
     min_fg: int = 8
     recentre: int = 1
+    recentre_min_shift: float = 0.0
     verify: int = 16
     verify_trim: float = 0.7
 
@@ -151,8 +154,11 @@ class CropPoser:
         rng = np.random.default_rng(self.seed)
         centres = [d.control_points[8] for d in dets]
         results: list = [None] * len(dets)  # (R, t, foreground rows of features, other hypotheses) of each detection
+        moved = [np.inf] * len(dets)  # how far each crop's centre moved in the last pass, metres
         for it in range(1 + self.cfg.recentre):
-            todo = [k for k in range(len(dets)) if it == 0 or results[k] is not None]
+            todo = [k for k in range(len(dets)) if it == 0 or (results[k] is not None and (
+                it == 1 or self.cfg.recentre_min_shift <= 0
+                or moved[k] > self.cfg.recentre_min_shift * self.objects.diameters[dets[k].obj_id]))]
             if not todo:
                 break
             preds = self._run(features, [centres[k] for k in todo], [dets[k].obj_id for k in todo])
@@ -167,7 +173,8 @@ class CropPoser:
                     continue
                 R, t, fg, others = res
                 results[k] = (R, t, np.unique(rows[fg]), others)
-                centres[k] = R @ self.objects.control_points[oid][8] + t
+                new = R @ self.objects.control_points[oid][8] + t
+                moved[k], centres[k] = float(np.linalg.norm(new - centres[k])), new
         out = []
         for d, r in zip(dets, results):
             if r is None:

@@ -398,3 +398,41 @@ def test_pose_from_crop_returns_the_best_fit_first_and_the_other_hypotheses_by_f
     assert fits == sorted(fits)
     _, _, _, none = pose_from_crop(xyz, np.ones(200), mxyz, obj.diameter, CropPoseConfig(verify=1), rng, None)
     assert none == []
+
+
+def test_third_crop_only_where_the_second_still_moved(labels):
+    """recentre 2 cuts a third crop; with recentre_min_shift only around the centres that the second crop still
+    moved by more than that share of the diameter. On true labels the second crop's pose is exact, so no crop
+    moves and the third pass is skipped, with the same poses."""
+    from detector.infer import CropPoseConfig, CropPoser
+    from detector.pose import Detection, ObjectInfo
+
+    cfg = CropConfig(num_points=256)
+    rng = np.random.default_rng(4)
+    with LabelFile(labels) as lf:
+        tab = lf.objects
+        objs = ObjectInfo.from_table(tab)
+        ids = [int(i) for i in tab.ids]
+        f = max((lf.frame(i) for i in range(lf.num_frames)), key=lambda f: len(f.instances))
+        inst = f.instances
+        dets = []
+        for g in range(len(inst)):
+            if inst.num_points[g] < 100:
+                continue
+            oid = int(inst.obj_id[g])
+            c = inst.control_points[g][8] + rng.normal(0, 0.015 / np.sqrt(3), 3)
+            dets.append(Detection(oid, 1.0, np.eye(3), c - objs.control_points[oid][8], 10,
+                                  objs.control_points[oid] + (c - objs.control_points[oid][8]), np.arange(3)))
+        assert len(dets) >= 2
+        crops, poses = {}, {}
+        for shift in (0.0, 0.04):
+            net = TrueCropNet(f, tab, ids, cfg)
+            seen = []
+            net.register_forward_hook(lambda mod, args, out: seen.append(len(args[1])))
+            poser = CropPoser(net, ids, objs, cfg, NORMALISATION, CropPoseConfig(recentre=2, recentre_min_shift=shift))
+            out = poser(dets, f.features)
+            crops[shift], poses[shift] = seen, [(d.R, d.t) for d in out]
+    assert crops[0.0] == [len(dets)] * 3  # every crop three times
+    assert crops[0.04] == [len(dets)] * 2  # the settled ones not a third time
+    for (R0, t0), (R1, t1) in zip(poses[0.0], poses[0.04]):
+        assert np.abs(t0 - t1).max() < 2e-3 and np.abs(R0 - R1).max() < 0.05
