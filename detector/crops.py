@@ -132,6 +132,9 @@ def roll_about_ray(points: np.ndarray, centre: np.ndarray, angle: float) -> tupl
     return (np.asarray(points, np.float64) - centre) @ Q.T + centre, Q
 
 
+#: The colour augmentations of both stages' training: "light" (a small gain and noise) or "camera" (camera_colour).
+COLOUR_MODES = ("light", "camera")
+
 #: camera_colour's ranges: exposure gain, per-channel white-balance gain, gamma, and the chances of a grey crop and
 #: of one without colour.
 EXPOSURE = (0.5, 1.6)

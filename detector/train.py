@@ -37,6 +37,7 @@ from detector import distributed
 from detector.checkpoint import read_checkpoint, save_checkpoint
 from detector.config import (NETWORK_PRESETS, config_from_dict, config_to_dict, load_preset, load_yaml,
                              set_dotted)
+from detector.crops import COLOUR_MODES
 from detector.data import NORMALISATION, PointDataset, StreamBatchSampler, collate
 from detector.distributed import DistContext
 from detector.errors import DetectorError
@@ -152,7 +153,7 @@ def validate_config(cfg: TrainConfig) -> None:
         (cfg.num_workers >= 0 and cfg.val_frames >= 0, "num_workers and val_frames must be >= 0"),
         (cfg.device in ("auto", "cpu", "cuda"), "device must be auto, cpu or cuda"),
         (cfg.indices in ("auto", "loader", "model"), "indices must be auto, loader or model"),
-        (cfg.colour in ("light", "camera"), "colour must be light or camera"),
+        (cfg.colour in COLOUR_MODES, "colour must be light or camera"),
     ]
     for ok, msg in checks:
         if not ok:

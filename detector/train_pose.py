@@ -20,7 +20,7 @@ from tqdm import tqdm
 from detector.checkpoint import FORMAT, atomic_torch_save, read_checkpoint
 from detector.config import config_from_dict, config_to_dict, set_dotted
 from detector.cropnet import CropNet, CropNetConfig, crop_loss
-from detector.crops import CropConfig
+from detector.crops import COLOUR_MODES, CropConfig
 from detector.data import NORMALISATION, CropDataset, StreamBatchSampler, collate_crops
 from detector.errors import DetectorError
 from detector.train import (
@@ -181,6 +181,6 @@ def load_pose_config(data: dict | None, overrides: dict | None = None) -> PoseTr
     cfg = config_from_dict(PoseTrainConfig, d)
     if cfg.steps < 1 or cfg.batch_frames < 1 or cfg.lr <= 0 or cfg.crop.num_points < 3 or cfg.crop.radius <= 0:
         raise DetectorError("stage-2 config: steps, batch_frames, lr, crop.num_points and crop.radius must be positive")
-    if cfg.crop.colour not in ("light", "camera"):
+    if cfg.crop.colour not in COLOUR_MODES:
         raise DetectorError(f"stage-2 config: crop.colour must be light or camera, got '{cfg.crop.colour}'")
     return cfg

@@ -14,7 +14,6 @@ from argen.label import LabelConfig, LabelRequest, run_label
 from detector.cropnet import CropNet, CropNetConfig, EdgeConv, crop_loss
 from detector.crops import (
     CropConfig,
-    ball_rows,
     jittered_centre,
     model_coordinates,
     roll_about_ray,
@@ -334,11 +333,19 @@ class TrueCropNet(torch.nn.Module):
         return {"fg_logit": torch.stack(logits).float(), "coords": torch.stack(coords).float()}
 
 
+def centre_detection(objs, oid: int, c: np.ndarray):
+    """A stage-1-like detection of object ``oid`` at centre ``c`` (3,) metres: its box moved there, no orientation."""
+    from detector.pose import Detection
+
+    shift = c - objs.control_points[oid][8]
+    return Detection(oid, 1.0, np.eye(3), shift, 10, objs.control_points[oid] + shift, np.arange(3))
+
+
 def test_crop_poser_with_true_crop_labels_gives_exact_poses(labels):
     """Stage 2 on true foreground and coordinates, from centres 1.5 cm off: every pose within 2 % of the diameter."""
     from detector.infer import CropPoser
     from detector.metrics import pose_error
-    from detector.pose import Detection, ObjectInfo
+    from detector.pose import ObjectInfo
 
     cfg = CropConfig(num_points=256)
     rng = np.random.default_rng(3)
@@ -356,10 +363,7 @@ def test_crop_poser_with_true_crop_labels_gives_exact_poses(labels):
                 if inst.num_points[g] < 100 or tab.symmetric[tab.index(int(inst.obj_id[g]))]:
                     continue
                 c = inst.control_points[g][8] + rng.normal(0, 0.015 / np.sqrt(3), 3)
-                oid = int(inst.obj_id[g])
-                cps = objs.control_points[oid] + (c - objs.control_points[oid][8])
-                dets.append((g, Detection(oid, 1.0, np.eye(3), c - objs.control_points[oid][8], 10, cps,
-                                          np.arange(3))))
+                dets.append((g, centre_detection(objs, int(inst.obj_id[g]), c)))
             out = poser([d for _, d in dets], f.features)
             assert len(out) == len(dets)
             for (g, _), d in zip(dets, out):
@@ -405,7 +409,7 @@ def test_third_crop_only_where_the_second_still_moved(labels):
     moved by more than that share of the diameter. On true labels the second crop's pose is exact, so no crop
     moves and the third pass is skipped, with the same poses."""
     from detector.infer import CropPoseConfig, CropPoser
-    from detector.pose import Detection, ObjectInfo
+    from detector.pose import ObjectInfo
 
     cfg = CropConfig(num_points=256)
     rng = np.random.default_rng(4)
@@ -419,10 +423,8 @@ def test_third_crop_only_where_the_second_still_moved(labels):
         for g in range(len(inst)):
             if inst.num_points[g] < 100:
                 continue
-            oid = int(inst.obj_id[g])
             c = inst.control_points[g][8] + rng.normal(0, 0.015 / np.sqrt(3), 3)
-            dets.append(Detection(oid, 1.0, np.eye(3), c - objs.control_points[oid][8], 10,
-                                  objs.control_points[oid] + (c - objs.control_points[oid][8]), np.arange(3)))
+            dets.append(centre_detection(objs, int(inst.obj_id[g]), c))
         assert len(dets) >= 2
         crops, poses = {}, {}
         for shift in (0.0, 0.04):
