@@ -51,7 +51,8 @@ def knn(xyz: torch.Tensor, k: int) -> torch.Tensor:
 class EdgeConv(nn.Module):
     """``relu(LN(max_j (W1 x_i + W2 (x_j - x_i))))`` over the neighbours j of i, or with ``norm_before_max``
     ``max_j relu(LN(W1 x_i + W2 (x_j - x_i)))``; the linear map is applied before the gather (``(W1 - W2) x_i +
-    W2 x_j``), so memory is (B, n, k, out) once."""
+    W2 x_j``), and the max is a running maximum over the k neighbour slices (B, n, out): no (B, n, k, out) tensor,
+    and several times faster on a CPU than a gather and a max over that tensor's neighbour axis."""
 
     def __init__(self, c_in: int, c_out: int, norm_before_max: bool = False):
         super().__init__()
@@ -62,12 +63,19 @@ class EdgeConv(nn.Module):
 
     def forward(self, x: torch.Tensor, idx: torch.Tensor) -> torch.Tensor:
         B, n, k = idx.shape
-        a = self.self_lin(x) - self.nb_lin(x)  # (B, n, out)
-        b = self.nb_lin(x)
-        nb = torch.gather(b, 1, idx.reshape(B, n * k, 1).expand(-1, -1, b.shape[-1])).reshape(B, n, k, -1)
+        b = self.nb_lin(x)  # (B, n, out)
+        a = self.self_lin(x) - b
+        flat = b.reshape(B * n, -1)
+        rows = idx + (torch.arange(B, device=idx.device) * n)[:, None, None]  # (B, n, k) rows of flat
         if self.norm_before_max:
-            return torch.relu(self.norm(a[:, :, None, :] + nb).max(dim=2).values)  # = max of the relu, k times cheaper
-        return torch.relu(self.norm(a + nb.max(dim=2).values))  # a_i is the same for every neighbour j
+            out = torch.relu(self.norm(a + flat[rows[:, :, 0]]))
+            for j in range(1, k):
+                out = torch.maximum(out, torch.relu(self.norm(a + flat[rows[:, :, j]])))
+            return out
+        m = flat[rows[:, :, 0]]
+        for j in range(1, k):
+            m = torch.maximum(m, flat[rows[:, :, j]])
+        return torch.relu(self.norm(a + m))  # a_i is the same for every neighbour j
 
 
 def mlp(sizes: list[int]) -> nn.Sequential:

@@ -46,9 +46,15 @@ class CropPoseConfig:
     points for a pose; recentre: crop again around the first pose's centre and redo it this many times;
     recentre_min_shift: from the third crop on, only crops whose centre moved by more than this fraction of the
     diameter in the previous pass are cut again (the others have settled; 0 = all of them);
+    samples: from the second crop on, each crop feeds the network this many random subsets of its points
+    (disjoint where the crop holds enough) and pools their correspondences: the network sees a crop at the
+    density it was trained on, ``crop.num_points``, while the pose gets several times more points (1 = one
+    subset, the first design);
     verify: refit this many of the best RANSAC hypotheses and keep the one whose model surface fits the crop's
     foreground points best (trimmed point-to-plane RMS over the best ``verify_trim`` share, as ICP's acceptance
-    test); 1 keeps RANSAC's own choice."""
+    test); 1 keeps RANSAC's own choice; fit_points: RANSAC scores its hypotheses, and the verification measures
+    fits, on at most this many of the foreground points (a random subset; with several ``samples`` the foreground
+    is that many times larger, and so would their cost be); the refits use them all."""
 
     fg_threshold: float = 0.5
     inlier: float = 0.05
@@ -56,18 +62,32 @@ class CropPoseConfig:
     min_fg: int = 8
     recentre: int = 1
     recentre_min_shift: float = 0.0
+    samples: int = 1
     verify: int = 16
     verify_trim: float = 0.7
+    fit_points: int = 256
+
+
+@torch.no_grad()
+def crop_subsets(rows: np.ndarray, num_points: int, samples: int, rng: np.random.Generator) -> list[np.ndarray]:
+    """``samples`` subsets of a crop's rows (k,), each of ``num_points`` rows (:func:`detector.crops.sample_crop`):
+    disjoint while the crop has enough points, then drawn independently. One subset is ``sample_crop``'s."""
+    if samples <= 1:
+        return [sample_crop(rows, num_points, rng)]
+    perm = rng.permutation(rows)
+    return [np.sort(perm[s * num_points:(s + 1) * num_points]) if (s + 1) * num_points <= len(rows)
+            else sample_crop(rows, num_points, rng) for s in range(samples)]
 
 
 @torch.no_grad()
 def crop_predictions(net, features: np.ndarray, centres: np.ndarray, classes: np.ndarray, diameters: np.ndarray,
-                     crop_cfg: CropConfig, normalisation: dict, seed: int = 0, device="cpu"):
-    """Run the crop network on one crop per centre.
+                     crop_cfg: CropConfig, normalisation: dict, seed: int = 0, device="cpu", samples: int = 1):
+    """Run the crop network on ``samples`` point subsets (:func:`crop_subsets`) of one crop per centre.
 
     features: (N,9) the frame's label features; centres: (D,3) metres; classes: (D,) class indices;
-    diameters: (D,) metres. Returns a list of D (rows (n,) into features, fg probability (n,), model coordinates
-    (n,3) metres) or None where the crop holds fewer than ``crop_cfg.min_points`` points.
+    diameters: (D,) metres. Returns a list of D (rows (m,) into features, fg probability (m,), model coordinates
+    (m,3) metres), the subsets' predictions one after the other (m = samples x ``crop_cfg.num_points``), or None
+    where the crop holds fewer than ``crop_cfg.min_points`` points.
     """
     xyz = np.asarray(features[:, :3], np.float64)
     rng = np.random.default_rng(seed)
@@ -76,9 +96,9 @@ def crop_predictions(net, features: np.ndarray, centres: np.ndarray, classes: np
         rows = ball_rows(xyz, c, crop_cfg.radius * dia)
         if len(rows) < crop_cfg.min_points:
             continue
-        rows = sample_crop(rows, crop_cfg.num_points, rng)
-        batch.append(crop_input(features, rows, c, crop_cfg.radius * dia, normalisation))
-        keep.append((k, rows))
+        for sub in crop_subsets(rows, crop_cfg.num_points, samples, rng):
+            batch.append(crop_input(features, sub, c, crop_cfg.radius * dia, normalisation))
+            keep.append((k, sub))
     if not batch:
         return out
     feats = torch.from_numpy(np.stack(batch)).to(device)
@@ -86,8 +106,11 @@ def crop_predictions(net, features: np.ndarray, centres: np.ndarray, classes: np
     res = net(feats, cls)
     prob = torch.sigmoid(res["fg_logit"]).cpu().numpy()
     coords = res["coords"].double().cpu().numpy()
+    pooled: dict[int, list] = {}
     for j, (k, rows) in enumerate(keep):
-        out[k] = (rows, prob[j], coords[j] * diameters[k])
+        pooled.setdefault(k, []).append((rows, prob[j], coords[j] * diameters[k]))
+    for k, parts in pooled.items():
+        out[k] = tuple(np.concatenate(z) for z in zip(*parts))
     return out
 
 
@@ -104,10 +127,12 @@ def pose_from_crop(xyz: np.ndarray, prob: np.ndarray, model_xyz: np.ndarray, dia
     if len(fg) < max(cfg.min_fg, 3):
         return None
     keep = cfg.verify if surface is not None else 1
-    cands = ransac_kabsch(model_xyz[fg], xyz[fg], prob[fg], cfg.inlier * diameter, rng, cfg.hypotheses, keep=keep)
+    cands = ransac_kabsch(model_xyz[fg], xyz[fg], prob[fg], cfg.inlier * diameter, rng, cfg.hypotheses, keep=keep,
+                          score_points=cfg.fit_points)
     if keep > 1:
         tree, normals = surface
-        res = fit_residuals(xyz[fg], tree, normals, np.stack([c[0] for c in cands]), np.stack([c[1] for c in cands]),
+        test = fg if len(fg) <= cfg.fit_points else fg[np.sort(rng.choice(len(fg), cfg.fit_points, replace=False))]
+        res = fit_residuals(xyz[test], tree, normals, np.stack([c[0] for c in cands]), np.stack([c[1] for c in cands]),
                             0.05 * diameter)  # (verify, n): all hypotheses in one query
         fits = [fit_rms(r, cfg.verify_trim) for r in res]
         order = np.argsort(fits, kind="stable")
@@ -140,11 +165,11 @@ class CropPoser:
         self.crop_cfg, self.normalisation, self.cfg = crop_cfg, normalisation, cfg or CropPoseConfig()
         self.device, self.seed = device, seed
 
-    def _run(self, features, centres, oids):
+    def _run(self, features, centres, oids, samples: int = 1):
         classes = np.array([self.class_ids.index(o) for o in oids], np.int64)
         dia = np.array([self.objects.diameters[o] for o in oids], np.float64)
         return crop_predictions(self.net, features, np.asarray(centres), classes, dia, self.crop_cfg,
-                                self.normalisation, self.seed, self.device)
+                                self.normalisation, self.seed, self.device, samples)
 
     def __call__(self, detections: list[Detection], features: np.ndarray, timings: dict | None = None
                  ) -> list[Detection]:
@@ -161,7 +186,8 @@ class CropPoser:
                 or moved[k] > self.cfg.recentre_min_shift * self.objects.diameters[dets[k].obj_id]))]
             if not todo:
                 break
-            preds = self._run(features, [centres[k] for k in todo], [dets[k].obj_id for k in todo])
+            preds = self._run(features, [centres[k] for k in todo], [dets[k].obj_id for k in todo],
+                              1 if it == 0 else self.cfg.samples)
             for k, pred in zip(todo, preds):
                 if pred is None:
                     continue

@@ -44,7 +44,9 @@ class PoseConfig:
     (a wrong-way first pose is a local minimum that ICP alone cannot leave); icp_min_gain: the ICP pose is kept
     only when it lowers that trimmed RMS by at least this fraction of the diameter (a smaller gain is within what
     the model's point sampling itself contributes, and on a few points of a smooth surface ICP can slide a right
-    pose by centimetres for such a gain);
+    pose by centimetres for such a gain); icp_points: ICP and its acceptance test use at most this many of a
+    detection's scene points, evenly spread over them (0 = all; their cost grows with the points, and a stage 2
+    that pools several crop samples hands over several hundred), the score after ICP uses them all;
     propagate: metres, a frame point belongs to a detection when its ``owner_votes`` nearest predicted points
     within this distance are all that detection's members (ICP points);
     centre_votes: instances from the box-centre votes alone (a two-stage model's stage 1, whose corners are
@@ -73,6 +75,7 @@ class PoseConfig:
     icp_gate: float = 0.05
     icp_starts: int = 8
     icp_min_gain: float = 0.001
+    icp_points: int = 0
     support_distance: float = 0.02
     support_floor: float = 0.004
     propagate: float = 0.01
@@ -186,12 +189,11 @@ def _proper_rotations(M: np.ndarray) -> np.ndarray:
     """The rotations R (H,3,3) that best map the centred source onto the centred target of H cross-covariances
     ``M[h] = sum (s - cs)(d - cd)^T`` (H,3,3): ``V diag(1, 1, det(V U^T)) U^T`` from the SVD, never a reflection."""
     U, _, Vt = np.linalg.svd(M)
-    d = np.sign(np.linalg.det(np.einsum("hji,hkj->hik", Vt, U)))
+    V = np.swapaxes(Vt, 1, 2)
+    d = np.sign(np.linalg.det(V) * np.linalg.det(U))  # det(V U^T)
     d[d == 0] = 1.0
-    D = np.zeros((len(M), 3, 3))
-    D[:, 0, 0] = D[:, 1, 1] = 1.0
-    D[:, 2, 2] = d
-    return np.einsum("hji,hjk,hlk->hil", Vt, D, U)
+    V[:, :, 2] *= d[:, None]
+    return V @ np.swapaxes(U, 1, 2)
 
 
 def kabsch_batch(src: np.ndarray, dst: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -201,8 +203,8 @@ def kabsch_batch(src: np.ndarray, dst: np.ndarray) -> tuple[np.ndarray, np.ndarr
     """
     src, dst = np.asarray(src, np.float64), np.asarray(dst, np.float64)
     cs, cd = src.mean(1), dst.mean(1)
-    R = _proper_rotations(np.einsum("hmi,hmj->hij", src - cs[:, None], dst - cd[:, None]))
-    return R, cd - np.einsum("hij,hj->hi", R, cs)
+    R = _proper_rotations(np.swapaxes(src - cs[:, None], 1, 2) @ (dst - cd[:, None]))
+    return R, cd - (R @ cs[:, :, None])[:, :, 0]
 
 
 def weighted_kabsch_shared(src: np.ndarray, dst: np.ndarray, weights: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -215,14 +217,21 @@ def weighted_kabsch_shared(src: np.ndarray, dst: np.ndarray, weights: np.ndarray
     w = np.asarray(weights, np.float64)
     w = w / w.sum(1, keepdims=True)
     cs, cd = w @ src, w @ dst  # (K,3)
-    M = np.einsum("kn,ni,nj->kij", w, src, dst) - cs[:, :, None] * cd[:, None, :]  # sum w (s - cs)(d - cd)^T
+    M = (w[:, :, None] * src).transpose(0, 2, 1) @ dst - cs[:, :, None] * cd[:, None, :]  # sum w (s - cs)(d - cd)^T
     R = _proper_rotations(M)
-    return R, cd - np.einsum("kij,kj->ki", R, cs)
+    return R, cd - (R @ cs[:, :, None])[:, :, 0]
+
+
+def _sq_residuals(R: np.ndarray, t: np.ndarray, m: np.ndarray, p: np.ndarray) -> np.ndarray:
+    """Squared distances ``|R[h] m + t[h] - p|^2`` (H,n) of H poses R (H,3,3), t (H,3) over the correspondences
+    m, p (n,3) metres (matrix products: an einsum over the H x n x 3 x 3 terms is several times slower)."""
+    d = m @ np.swapaxes(R, 1, 2) + (t[:, None] - p)
+    return np.einsum("hni,hni->hn", d, d)
 
 
 def ransac_kabsch(model_pts: np.ndarray, scene_pts: np.ndarray, weights: np.ndarray, threshold: float,
-                  rng: np.random.Generator, hypotheses: int = 128, refits: int = 3, keep: int = 1
-                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray] | list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
+                  rng: np.random.Generator, hypotheses: int = 128, refits: int = 3, keep: int = 1,
+                  score_points: int | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray] | list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
     """A pose from noisy 3D-3D correspondences: RANSAC over 3-point Kabsch hypotheses, then weighted refits.
 
     model_pts: (n,3) model frame, metres (predicted model coordinates); scene_pts: (n,3) camera frame, metres;
@@ -230,19 +239,24 @@ def ransac_kabsch(model_pts: np.ndarray, scene_pts: np.ndarray, weights: np.ndar
     ``|R m + t - p|`` is under it. The hypothesis with the largest inlier weight wins; it is refitted on its
     inliers ``refits`` times (weighted Kabsch). Returns R (3,3), t (3,) float64 and the inlier mask (n,) bool;
     with ``keep`` > 1, a list of the ``keep`` best hypotheses so refitted, best first (for a verification step).
-    Needs n >= 3.
+    score_points: hypotheses are drawn from, and scored on, at most this many of the correspondences (a random
+    subset; None = all); the refits use all of them. Needs n >= 3.
     """
     m, p = np.asarray(model_pts, np.float64), np.asarray(scene_pts, np.float64)
     w = np.asarray(weights, np.float64)
     n = len(m)
-    idx = np.stack([rng.choice(n, 3, replace=False) for _ in range(hypotheses)]) if n < 64 else \
-        rng.integers(0, n, (hypotheses, 3))
+    sub = np.arange(n) if score_points is None or n <= score_points else \
+        np.sort(rng.choice(n, score_points, replace=False))
+    ns = len(sub)
+    # three distinct points per hypothesis where repeats would be common; above 64 points they are rare and harmless
+    idx = sub[np.argsort(rng.random((hypotheses, ns)), axis=1)[:, :3] if ns < 64 else
+              rng.integers(0, ns, (hypotheses, 3))]
     Rh, th = kabsch_batch(m[idx], p[idx])
-    res = np.linalg.norm(np.einsum("hij,nj->hni", Rh, m) + th[:, None] - p, axis=2)  # (H, n)
-    score = ((res < threshold) * w).sum(1)
+    inside = _sq_residuals(Rh, th, m[sub], p[sub]) < threshold * threshold  # (H, ns)
+    score = inside @ w[sub]
     best = np.argsort(-score, kind="stable")[:max(keep, 1)]
     R, t = Rh[best], th[best]
-    inl = res[best] < threshold  # (K, n)
+    inl = inside[best] if ns == n else _sq_residuals(R, t, m, p) < threshold * threshold  # (K, n)
     active = np.ones(len(best), bool)
     for _ in range(refits):  # all kept hypotheses at once; one whose inliers fall under 3 stays where it is
         active &= inl.sum(1) >= 3
@@ -250,7 +264,7 @@ def ransac_kabsch(model_pts: np.ndarray, scene_pts: np.ndarray, weights: np.ndar
             break
         R1, t1 = weighted_kabsch_shared(m, p, np.where(inl, w + 1e-9, 0.0))
         R, t = np.where(active[:, None, None], R1, R), np.where(active[:, None], t1, t)
-        new = np.linalg.norm(np.einsum("kij,nj->kni", R, m) + t[:, None] - p, axis=2) < threshold
+        new = _sq_residuals(R, t, m, p) < threshold * threshold
         inl = np.where(active[:, None], new, inl)
     out = [(R[k], t[k], inl[k]) for k in range(len(best))]
     return out if keep > 1 else out[0]
@@ -318,7 +332,7 @@ def fit_residuals(scene_points: np.ndarray, model_tree, model_normals: np.ndarra
     R, t = np.asarray(R, np.float64), np.asarray(t, np.float64)
     many = R.ndim == 3
     Rk, tk = (R, t) if many else (R[None], t[None])
-    x = np.einsum("ksj,kji->ksi", np.asarray(scene_points, np.float64)[None] - tk[:, None], Rk)  # model frame
+    x = (np.asarray(scene_points, np.float64)[None] - tk[:, None]) @ Rk  # model frame, (K,S,3)
     flat = x.reshape(-1, 3)
     d, j = model_tree.query(flat, k=1, distance_upper_bound=gate)
     found = np.isfinite(d)
@@ -511,7 +525,9 @@ def refine(detections: list[Detection], xyz: np.ndarray, objects: ObjectInfo, cf
         if len(pts) < cfg.icp_min_points:
             out.append(replace(d, icp="skipped"))
             continue
-        R, t, ok, rms = refine_pose(pts, d.obj_id, d.R, d.t, objects, cfg, d.alternatives)
+        fit = pts if cfg.icp_points <= 0 or len(pts) <= cfg.icp_points else \
+            pts[np.linspace(0, len(pts) - 1, cfg.icp_points).round().astype(np.int64)]
+        R, t, ok, rms = refine_pose(fit, d.obj_id, d.R, d.t, objects, cfg, d.alternatives)
         score = d.score
         if d.points is not None:  # a two-stage detection: its score is the support of its points, at the new pose
             tree, normals = objects.surface(d.obj_id)

@@ -404,20 +404,26 @@ def test_pose_from_crop_returns_the_best_fit_first_and_the_other_hypotheses_by_f
     assert none == []
 
 
+def busiest_frame(lf):
+    """A label file's object table, its :class:`detector.pose.ObjectInfo`, the class ids and the frame with the most
+    instances."""
+    from detector.pose import ObjectInfo
+
+    tab = lf.objects
+    f = max((lf.frame(i) for i in range(lf.num_frames)), key=lambda f: len(f.instances))
+    return tab, ObjectInfo.from_table(tab), [int(i) for i in tab.ids], f
+
+
 def test_third_crop_only_where_the_second_still_moved(labels):
     """recentre 2 cuts a third crop; with recentre_min_shift only around the centres that the second crop still
     moved by more than that share of the diameter. On true labels the second crop's pose is exact, so no crop
     moves and the third pass is skipped, with the same poses."""
     from detector.infer import CropPoseConfig, CropPoser
-    from detector.pose import ObjectInfo
 
     cfg = CropConfig(num_points=256)
     rng = np.random.default_rng(4)
     with LabelFile(labels) as lf:
-        tab = lf.objects
-        objs = ObjectInfo.from_table(tab)
-        ids = [int(i) for i in tab.ids]
-        f = max((lf.frame(i) for i in range(lf.num_frames)), key=lambda f: len(f.instances))
+        tab, objs, ids, f = busiest_frame(lf)
         inst = f.instances
         dets = []
         for g in range(len(inst)):
@@ -438,3 +444,65 @@ def test_third_crop_only_where_the_second_still_moved(labels):
     assert crops[0.04] == [len(dets)] * 2  # the settled ones not a third time
     for (R0, t0), (R1, t1) in zip(poses[0.0], poses[0.04]):
         assert np.abs(t0 - t1).max() < 2e-3 and np.abs(R0 - R1).max() < 0.05
+
+
+def test_crop_subsets_are_disjoint_while_the_crop_has_enough_points():
+    from detector.crops import sample_crop
+    from detector.infer import crop_subsets
+
+    rows = np.arange(1000, 1700)  # a crop of 700 frame rows
+    subs = crop_subsets(rows, 256, 2, np.random.default_rng(0))
+    assert [len(s) for s in subs] == [256, 256] and not set(subs[0]) & set(subs[1])
+    assert all(np.all(np.diff(s) > 0) and set(s) <= set(rows) for s in subs)
+    subs = crop_subsets(rows, 256, 3, np.random.default_rng(0))  # 768 > 700: the third is drawn on its own
+    assert [len(s) for s in subs] == [256] * 3 and not set(subs[0]) & set(subs[1]) and set(subs[2]) <= set(rows)
+    one = crop_subsets(rows, 256, 1, np.random.default_rng(5))[0]
+    assert np.array_equal(one, sample_crop(rows, 256, np.random.default_rng(5)))  # the one-sample design unchanged
+
+
+def test_pooled_crop_samples_feed_the_pose_all_their_points(labels):
+    """With samples 3 the second crop runs the network on three point subsets of each crop and its pose uses the
+    foreground points of all three: on true labels every pose is still exact, and each detection carries more
+    distinct foreground points than one subset holds."""
+    from detector.infer import CropPoseConfig, CropPoser
+    from detector.metrics import pose_error
+
+    cfg = CropConfig(num_points=128)
+    rng = np.random.default_rng(6)
+    with LabelFile(labels) as lf:
+        tab, objs, ids, f = busiest_frame(lf)
+        inst = f.instances
+        gs = [g for g in range(len(inst)) if inst.num_points[g] >= 250 and not tab.symmetric[tab.index(
+            int(inst.obj_id[g]))]]
+        assert len(gs) >= 2
+        dets = [centre_detection(objs, int(inst.obj_id[g]), inst.control_points[g][8] + rng.normal(0, 0.008, 3))
+                for g in gs]
+        fg_points = {}
+        for samples in (1, 3):
+            net = TrueCropNet(f, tab, ids, cfg)
+            batches = []
+            net.register_forward_hook(lambda mod, args, out: batches.append(len(args[1])))
+            out = CropPoser(net, ids, objs, cfg, NORMALISATION, CropPoseConfig(samples=samples, fit_points=100))(
+                dets, f.features)
+            assert batches == [len(dets), samples * len(dets)]  # the first crop once, the second `samples` times
+            assert len(out) == len(dets)
+            for g, d in zip(gs, out):
+                m = tab.index(d.obj_id)
+                assert pose_error(tab.model_points[m], False, inst.R[g], inst.t[g], d.R, d.t) < 0.02 * tab.diameters[m]
+                assert np.all(f.instance[d.points] == g) and len(np.unique(d.points)) == len(d.points)
+            fg_points[samples] = [len(d.points) for d in out]
+    assert all(b > 1.5 * a for a, b in zip(fg_points[1], fg_points[3])), fg_points
+
+
+def test_ransac_scored_on_a_subset_refits_on_every_correspondence():
+    rng = np.random.default_rng(7)
+    R, t = Rotation.random(random_state=rng).as_matrix(), np.array([0.05, 0.0, 0.7])
+    m = rng.normal(size=(600, 3)) * 0.05
+    p = m @ R.T + t + rng.normal(0, 0.001, m.shape)
+    bad = rng.random(600) < 0.4
+    p[bad] = t + rng.normal(size=(bad.sum(), 3)) * 0.05
+    Re, te, inl = ransac_kabsch(m, p, np.ones(600), 0.01, rng, score_points=64)
+    assert np.degrees(np.arccos(np.clip((np.trace(Re.T @ R) - 1) / 2, -1, 1))) < 0.5
+    assert np.linalg.norm(te - t) < 0.001
+    assert inl.shape == (600,) and inl[~bad].all()  # the inliers of all 600, not only of the 64 scored
+    assert inl[bad].mean() < 0.05  # (an outlier may land within 1 cm by chance)

@@ -17,6 +17,8 @@ from detector.pose import (
     nms,
     refine,
     robust_control_points,
+    support_radius,
+    surface_support,
     vote_clusters,
 )
 
@@ -356,3 +358,30 @@ def test_icp_keeps_a_right_pose_unless_it_fits_clearly_better():
     off = replace(d, t=t + [0.01, 0.0, 0.0])
     (fixed,) = refine([off], scene, objs, PoseConfig(icp=True))
     assert fixed.icp == "accepted" and np.linalg.norm(fixed.t - t) < 0.002
+
+
+def test_icp_on_a_spread_subset_of_many_points_still_fixes_the_pose():
+    """icp_points caps the points ICP and its acceptance test use (a stage 2 pooling several crop samples hands
+    over hundreds): the capped ICP still fixes a 6 degree / 1.5 cm error, and the score after ICP is the support
+    of all the detection's points."""
+    rng = np.random.default_rng(22)
+    obj, model, R, t, surf, _ = resting_scene("drill", rng)
+    objs = ObjectInfo({1: obj.control_points}, {1: obj.diameter}, {1: model})
+    noisy = surf + rng.normal(0, 0.001, surf.shape)
+    assert len(noisy) > 1000
+    R0 = Rotation.from_rotvec(np.radians(6) * np.array([0.6, 0.0, 0.8])).as_matrix() @ R
+    d = Detection(1, 1.0, R0, t + [0.015, 0.0, 0.0], 10, np.zeros((9, 3)), np.arange(3),
+                  points=np.arange(len(noisy)))
+    cfg = PoseConfig(icp=True, icp_points=150)
+    (r,) = refine([d], noisy[:3], objs, cfg, cloud=noisy)
+    assert r.icp == "accepted" and add_error(model, R, t, r.R, r.t) < 0.003
+    tree, normals = objs.surface(1)
+    dist = support_radius(cfg.support_distance, cfg.support_floor, obj.diameter)
+    assert r.score == surface_support(noisy, tree, normals, r.R, r.t, dist)
+    from detector.pose import fit_residuals, fit_rms
+
+    spread = noisy[np.linspace(0, len(noisy) - 1, 150).round().astype(np.int64)]  # the fit before ICP was on these
+    before = fit_rms(fit_residuals(spread, tree, normals, d.R, d.t, cfg.icp_gate * obj.diameter), cfg.icp_trim)
+    assert r.fit_rms[0] == pytest.approx(before)
+    (full,) = refine([d], noisy[:3], objs, PoseConfig(icp=True), cloud=noisy)
+    assert add_error(model, R, t, full.R, full.t) < 0.003
