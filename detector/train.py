@@ -48,7 +48,8 @@ from detector.model import ModelConfig, PoseNet, preset
 LABEL_KEYS = ("features", "cls", "instance", "control_points", "frame", "point_index")
 
 #: Config keys that may differ when resuming (they do not change the numbers of the steps already run).
-RESUME_FREE_KEYS = {"steps", "epochs", "checkpoint_every", "val_every", "val_frames", "num_workers", "device"}
+RESUME_FREE_KEYS = {"steps", "epochs", "checkpoint_every", "keep_every", "val_every", "val_frames", "num_workers",
+                    "device"}
 
 METRIC_FIELDS = ["step", "epoch", "phase", "loss", "cls", "offset", "conf", "lr", "acc", "steps_per_s",
                  "val_loss", "val_acc"]

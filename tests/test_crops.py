@@ -269,7 +269,8 @@ def test_two_stage_train_resume_eval_predict(labels, tmp_path):
 
     run = CliRunner()
     out = tmp_path / "run"
-    r = run.invoke(det_app, ["train", str(labels), "--out", str(out), *tiny_two_stage_args(2, 3)])
+    r = run.invoke(det_app, ["train", str(labels), "--out", str(out), *tiny_two_stage_args(2, 3),
+                             "--set", "stage2.keep_every=2"])
     assert r.exit_code == 0, r.output
     assert (out / "model.pt").is_file() and (out / "detect" / "last.pt").is_file() and (out / "pose" / "last.pt").is_file()
     ck = load_checkpoint(out / "model.pt")
@@ -283,6 +284,28 @@ def test_two_stage_train_resume_eval_predict(labels, tmp_path):
     rows = (out / "pose" / "metrics.csv").read_text().strip().splitlines()[1:]
     assert [int(x.split(",")[0]) for x in rows] == [1, 2, 3, 4, 5]
     assert len((out / "detect" / "metrics.csv").read_text().strip().splitlines()) == 3
+    # the kept stage-2 snapshots (keep_every 2, kept across the resume): weights without optimiser state
+    from detector.checkpoint import read_checkpoint
+
+    snaps = sorted(p.name for p in (out / "pose").glob("step_*.pt"))
+    assert snaps == ["step_000002.pt", "step_000004.pt"]
+    snap = read_checkpoint(out / "pose" / "step_000004.pt")["pose"]
+    assert snap["step"] == 4 and snap["train_state"] is None and snap["class_ids"] == ck.pose["class_ids"]
+    # examples/linemod/curve.py evaluates each snapshot (and the final weights) with the run's stage 1
+    import importlib.util
+    from pathlib import Path
+
+    spec = importlib.util.spec_from_file_location(
+        "curve", Path(__file__).resolve().parents[1] / "examples" / "linemod" / "curve.py")
+    curve = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(curve)
+    points = curve.curve_points(out, labels, 1, stage1_minutes=0.5)
+    assert [p["step"] for p in points] == [2, 4, 5]
+    minutes = [p["minutes"] for p in points]
+    assert 0.5 <= minutes[0] and minutes == sorted(minutes)
+    log = out / "pose" / "metrics.csv"
+    assert 0 < curve.train_seconds(log, 2) < curve.train_seconds(log, 4) < curve.train_seconds(log)
+    assert all(0.0 <= p[k] <= 100.0 for p in points for k in ("noicp", "icp"))
     # eval and predict with the model's defaults
     rep = tmp_path / "rep"
     r = run.invoke(det_app, ["eval", str(out / "model.pt"), str(labels), "--out", str(rep), "--icp", "--quiet",
