@@ -32,6 +32,8 @@ class PoseConfig:
     """Options of the pose stage.
 
     tau: confidence threshold; cell: voting voxel size, metres; min_votes: fewest votes an instance needs;
+    mode_radius: > 0 clusters the centre votes around their density modes within this fraction of the diameter
+    (:func:`vote_modes`; instances side by side stay apart) instead of in touching ``cell`` voxels;
     nms_fraction: centres closer than this fraction of the object's diameter are one detection;
     inlier_fraction: votes farther than this fraction of the diameter from the median are outliers;
     icp: refine with ICP; icp_distance: ICP correspondence distance as a fraction of the diameter;
@@ -64,6 +66,7 @@ class PoseConfig:
     tau: float = 0.8
     cell: float = 0.02
     min_votes: int = 3
+    mode_radius: float = 0.0
     nms_fraction: float = 0.5
     inlier_fraction: float = 0.15
     icp: bool = False
@@ -149,6 +152,48 @@ def vote_clusters(centres: np.ndarray, cell: float) -> tuple[np.ndarray, np.ndar
     _, cell_label = scipy.sparse.csgraph.connected_components(graph, directed=False)
     labels = cell_label[vote_cell].astype(np.int64)
     return labels, np.bincount(labels).astype(np.int64)
+
+
+def vote_modes(centres: np.ndarray, weights: np.ndarray, radius: float, min_votes: int
+               ) -> tuple[np.ndarray, np.ndarray]:
+    """Cluster votes around their density modes: from the vote with the most votes within ``radius`` among the
+    unassigned ones, mean-shift (flat kernel of ``radius``, weighted) to a mode, and give the mode every unassigned
+    vote within ``radius``; repeat while a mode gathers at least ``min_votes``. Unlike touching voxels
+    (:func:`vote_clusters`), two objects whose vote clouds touch stay two clusters.
+
+    centres: (V,3) metres; weights: (V,) >= 0; radius: metres. Returns labels (V,) int64 (-1 for votes of no
+    cluster) and counts (C,) int64 votes per cluster.
+    """
+    centres = np.asarray(centres, np.float64)
+    w = np.asarray(weights, np.float64) + 1e-12
+    labels = np.full(len(centres), -1, np.int64)
+    if len(centres) == 0:
+        return labels, np.zeros(0, np.int64)
+    density = cKDTree(centres).query_ball_point(centres, radius, return_length=True)
+    order = np.argsort(-density, kind="stable")
+    free = np.ones(len(centres), bool)
+    counts: list[int] = []
+    r2 = radius * radius
+    while True:
+        seeds = order[free[order]]
+        if len(seeds) < min_votes:
+            break
+        m = centres[seeds[0]]
+        for _ in range(20):
+            near = free & (np.sum((centres - m) ** 2, axis=1) < r2)
+            new = w[near] @ centres[near] / w[near].sum()
+            done = np.sum((new - m) ** 2) < 1e-8 * r2
+            m = new
+            if done:
+                break
+        near = free & (np.sum((centres - m) ** 2, axis=1) < r2)
+        if near.sum() < min_votes:
+            free[seeds[0]] = False  # a sparse seed: no cluster around it
+            continue
+        labels[near] = len(counts)
+        counts.append(int(near.sum()))
+        free &= ~near
+    return labels, np.asarray(counts, np.int64)
 
 
 def robust_control_points(votes: np.ndarray, weights: np.ndarray, diameter: float,
@@ -422,7 +467,11 @@ def detect(xyz: np.ndarray, obj_ids: np.ndarray, confidence: np.ndarray, control
     groups = []
     for oid in np.unique(obj_ids[keep]):
         rows = np.flatnonzero(keep & (obj_ids == oid))
-        labels, counts = vote_clusters(control_points[rows, 8], cfg.cell)
+        if cfg.mode_radius > 0:
+            labels, counts = vote_modes(control_points[rows, 8], np.asarray(confidence, np.float64)[rows],
+                                        cfg.mode_radius * objects.diameters[oid], cfg.min_votes)
+        else:
+            labels, counts = vote_clusters(control_points[rows, 8], cfg.cell)
         for c in np.flatnonzero(counts >= cfg.min_votes):
             groups.append((int(oid), rows[labels == c]))
     t1 = time.perf_counter()

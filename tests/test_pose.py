@@ -76,6 +76,38 @@ def test_vote_clusters_separates_two_instances_20cm_apart():
     assert len(set(labels[:100])) == 1 and len(set(labels[100:])) == 1 and labels[0] != labels[100]
 
 
+def test_vote_modes_keep_two_side_by_side_instances_apart():
+    """Two instances of a 10 cm object 7 cm apart (LC-HF scenes put them side by side), votes scattered 1 cm per
+    axis: the vote clouds touch, so touching voxels make one cluster; the density modes make two, each around
+    its instance. One instance's votes alone stay one cluster, and too few votes make none."""
+    from detector.pose import vote_modes
+
+    rng = np.random.default_rng(9)
+    ca, cb = np.array([0.0, 0.0, 0.8]), np.array([0.07, 0.0, 0.8])
+    votes = np.concatenate([ca + rng.normal(scale=0.01, size=(150, 3)), cb + rng.normal(scale=0.01, size=(120, 3))])
+    assert len(vote_clusters(votes, 0.02)[1]) == 1
+    labels, counts = vote_modes(votes, np.ones(len(votes)), 0.035, 3)
+    assert len(counts) == 2
+    for lab in range(2):
+        mine = votes[labels == lab]
+        truth = ca if np.linalg.norm(mine.mean(0) - ca) < np.linalg.norm(mine.mean(0) - cb) else cb
+        assert np.linalg.norm(np.median(mine, 0) - truth) < 0.006
+    assert (labels[:150] == labels[0]).mean() > 0.9 and (labels[150:] == labels[150]).mean() > 0.9
+    assert labels[0] != labels[150]
+    one_labels, one = vote_modes(votes[:150], np.ones(150), 0.035, 3)
+    assert len(one) == 1 and one[0] >= 140 and (one_labels >= 0).sum() == one[0]
+    assert len(vote_modes(votes[:2], np.ones(2), 0.035, 3)[1]) == 0
+    # detect's centre votes with mode_radius (a fraction of the diameter): the two instances
+    box = BOX * (0.1 / DIAM)
+    objs = ObjectInfo({7: box}, {7: 0.1}, {7: box})
+    cps = np.broadcast_to(box, (len(votes), 9, 3)) + (votes - box[8])[:, None, :]
+    xyz, ids, conf = votes.copy(), np.full(len(votes), 7), np.ones(len(votes))
+    for radius, found in ((0.0, 1), (0.35, 2)):
+        dets = detect(xyz, ids, conf, cps, objs, PoseConfig(centre_votes=True, tau=0.1, mode_radius=radius))
+        assert len(dets) == found
+    assert sorted(round(float(d.control_points[8][0]), 2) for d in dets) == [0.0, 0.07]
+
+
 def test_detect_two_instances_of_one_object_and_background():
     rng = np.random.default_rng(3)
     objs = ObjectInfo({7: BOX}, {7: DIAM}, {7: BOX})
