@@ -32,7 +32,10 @@ class CropConfig:
     degree spread, a hand-held sensor also stays near upright, and the support plane below an object is a cue
     the network should keep); colour: the colour augmentation, "light" (a gain of 0.8-1.2 and noise on the
     normalised colours) or "camera" (:func:`camera_colour`: exposure, white balance, gamma, sometimes grey or no
-    colour at all, as real cameras differ from the renderer).
+    colour at all, as real cameras differ from the renderer); neighbour: augmentation puts, with this chance, a
+    copy of the instance's own points beside it as background (:func:`add_neighbour`), at a lateral distance of
+    ``neighbour_offset`` (min, max) diameters between the centres: scenes such as LC-HF hold several instances of
+    one object side by side, and a crop around one of them must not take its neighbour for it.
     """
 
     radius: float = 0.7
@@ -44,6 +47,8 @@ class CropConfig:
     min_object_points: int = 30
     roll_deg: float = 15.0
     colour: str = "light"
+    neighbour: float = 0.0
+    neighbour_offset: tuple[float, float] = (0.5, 1.0)
 
     def to_dict(self) -> dict:
         return dict(self.__dict__)
@@ -53,7 +58,10 @@ class CropConfig:
         """A CropConfig from :meth:`to_dict`'s mapping. Models trained before the jitter was relative to the
         diameter store ``jitter`` / ``jitter_clip`` in metres; those only shaped the training crops, so they are
         dropped (the loaded config is for inference) rather than reinterpreted."""
-        return cls(**{k: v for k, v in d.items() if k not in LEGACY_KEYS})
+        d = {k: v for k, v in d.items() if k not in LEGACY_KEYS}
+        if "neighbour_offset" in d:
+            d["neighbour_offset"] = tuple(d["neighbour_offset"])
+        return cls(**d)
 
 
 #: CropConfig keys of older model files that inference does not use (the training jitter in metres).
@@ -160,6 +168,24 @@ def camera_colour(rgb: np.ndarray, rng: np.random.Generator) -> np.ndarray:
     return np.clip(out + rng.normal(0.0, 0.02, out.shape), 0.0, 1.0).astype(np.float32)
 
 
+def add_neighbour(own_xyz: np.ndarray, own_feats: np.ndarray, centre: np.ndarray, diameter: float,
+                  offset: tuple[float, float], rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+    """A second instance of an object beside it, made of the object's own points: own_xyz (m,3) metres and
+    own_feats (m,9) label features, turned about the camera ray through ``centre`` (3,) metres (the instance's
+    centre) by up to 30 degrees (it stays upright, as instances standing side by side are) and moved across the ray
+    by a random ``offset`` (min, max) times ``diameter``. Returns the copy's points (m,3) metres and features (m,9)
+    (xyz replaced, normals turned with the points)."""
+    ray = np.asarray(centre, np.float64) / np.linalg.norm(centre)
+    side = np.cross(ray, rng.normal(size=3))
+    side /= np.linalg.norm(side)
+    p, Q = roll_about_ray(own_xyz, centre, np.deg2rad(rng.uniform(-30.0, 30.0)))
+    p = p + side * rng.uniform(*offset) * diameter
+    f = np.array(own_feats, dtype=np.float32, copy=True)
+    f[:, :3] = p.astype(np.float32)
+    f[:, 6:9] = f[:, 6:9] @ Q.T.astype(np.float32)
+    return p, f
+
+
 def training_crop(frame, g: int, diameter: float, sym_transforms: np.ndarray, cfg: CropConfig,
                   rng: np.random.Generator, normalisation: dict, augment: bool = False) -> dict | None:
     """One training crop around instance ``g`` of ``frame`` (an ``argen.h5.FrameLabels``), or None (too few points).
@@ -167,27 +193,43 @@ def training_crop(frame, g: int, diameter: float, sym_transforms: np.ndarray, cf
     Returns {"features": (n,9) float32 network input, "fg": (n,) float32 1 on the instance's points,
     "coords": (S,n,3) float32 model coordinates (diameters) of every point under each symmetry (meaningful on
     foreground points only), "centre": (3,) metres}. With ``augment`` the crop is rolled about the camera ray by up
-    to ``cfg.roll_deg`` (model coordinates do not change), colour is changed (``cfg.colour``) and points get 1 mm
-    noise.
+    to ``cfg.roll_deg`` (model coordinates do not change), colour is changed (``cfg.colour``), points get 1 mm
+    noise and, with chance ``cfg.neighbour``, a copy of the instance stands beside it as background
+    (:func:`add_neighbour`).
     """
     inst = frame.instances
     xyz = np.asarray(frame.features[:, :3], np.float64)
+    features, instance = frame.features, np.asarray(frame.instance)
     radius = cfg.radius * diameter
     centre = jittered_centre(inst.control_points[g][8], diameter, cfg, rng)
     rows = ball_rows(xyz, centre, radius)
     if len(rows) < cfg.min_points:
         return None
+    if augment and cfg.neighbour > 0 and rng.random() < cfg.neighbour:
+        # the crop's points plus a copy of the instance beside it (background, instance -2), as one small frame
+        own = np.flatnonzero(instance == g)
+        p, f = add_neighbour(xyz[own], np.asarray(features)[own], inst.control_points[g][8], diameter,
+                             cfg.neighbour_offset, rng)
+        keep = np.sum((p - centre) ** 2, axis=1) <= radius * radius
+        if keep.any():  # copied points within 5 mm of a crop point would interpenetrate it: dropped
+            from scipy.spatial import cKDTree
+
+            keep[keep] = cKDTree(xyz[rows]).query(p[keep], distance_upper_bound=0.005)[0] >= 0.005
+        xyz = np.concatenate([xyz[rows], p[keep]])
+        features = np.concatenate([np.asarray(features)[rows], f[keep]])
+        instance = np.concatenate([instance[rows], np.full(int(keep.sum()), -2, instance.dtype)])
+        rows = np.arange(len(xyz))
     rows = sample_crop(rows, cfg.num_points, rng)
-    fg = np.asarray(frame.instance)[rows] == g
+    fg = instance[rows] == g
     coords = model_coordinates(xyz[rows], inst.R[g], inst.t[g], diameter)
-    feats = crop_input(frame.features, rows, centre, radius, normalisation)
+    feats = crop_input(features, rows, centre, radius, normalisation)
     if augment:
         p, Q = roll_about_ray(xyz[rows], centre, np.deg2rad(rng.uniform(-cfg.roll_deg, cfg.roll_deg)))
         p = p + rng.normal(0.0, 0.001, p.shape)
         feats[:, :3] = ((p - centre) / radius).astype(np.float32)
         feats[:, 6:9] = (feats[:, 6:9] @ Q.T.astype(np.float32))
         if cfg.colour == "camera":
-            rgb = camera_colour(np.asarray(frame.features)[rows, 3:6], rng)
+            rgb = camera_colour(np.asarray(features)[rows, 3:6], rng)
             feats[:, 3:6] = normalised_colour(rgb, normalisation)
         else:
             feats[:, 3:6] = feats[:, 3:6] * np.float32(rng.uniform(0.8, 1.2)) + rng.normal(0, 0.1, 3).astype(np.float32)

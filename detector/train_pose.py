@@ -187,6 +187,10 @@ def load_pose_config(data: dict | None, overrides: dict | None = None) -> PoseTr
     cfg = config_from_dict(PoseTrainConfig, d)
     if cfg.steps < 1 or cfg.batch_frames < 1 or cfg.lr <= 0 or cfg.crop.num_points < 3 or cfg.crop.radius <= 0:
         raise DetectorError("stage-2 config: steps, batch_frames, lr, crop.num_points and crop.radius must be positive")
+    lo, hi = cfg.crop.neighbour_offset
+    if not (0.0 <= cfg.crop.neighbour <= 1.0 and 0.0 < lo <= hi):
+        raise DetectorError("stage-2 config: crop.neighbour must lie in [0, 1] and crop.neighbour_offset be "
+                            "[min, max] with 0 < min <= max")
     if cfg.crop.colour not in COLOUR_MODES:
         raise DetectorError(f"stage-2 config: crop.colour must be light or camera, got '{cfg.crop.colour}'")
     return cfg

@@ -70,6 +70,57 @@ def test_training_crop_targets_are_the_instance_and_its_model_coordinates(labels
             assert np.median(near) < 0.01
 
 
+def test_neighbour_copy_is_the_instance_moved_across_the_ray_and_upright():
+    from detector.crops import add_neighbour
+
+    rng = np.random.default_rng(11)
+    centre = np.array([0.1, -0.05, 0.8])
+    pts = centre + rng.normal(scale=0.03, size=(200, 3))
+    normals = rng.normal(size=(200, 3))
+    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+    feats = np.concatenate([pts, rng.random((200, 3)), normals], 1).astype(np.float32)
+    ray = centre / np.linalg.norm(centre)
+    for _ in range(10):
+        p, f = add_neighbour(np.concatenate([pts, centre[None]]), np.concatenate([feats, feats[:1]]), centre, 0.1,
+                             (0.5, 0.8), rng)
+        move = p[-1] - centre  # where the instance's centre went: across the ray, 0.5-0.8 diameters
+        assert abs(move @ ray) < 1e-9 and 0.05 - 1e-9 <= np.linalg.norm(move) <= 0.08 + 1e-9
+        # a rigid motion turning about the ray by at most 30 degrees: distances kept, normals turned alike
+        assert np.allclose(np.linalg.norm(p[:-1] - p[-1], axis=1), np.linalg.norm(pts - centre, axis=1))
+        Q = np.linalg.lstsq(pts - centre, p[:-1] - p[-1], rcond=None)[0].T
+        assert np.allclose(Q @ ray, ray, atol=1e-6) and np.degrees(np.arccos((np.trace(Q) - 1) / 2)) <= 30.0 + 1e-6
+        assert np.allclose(f[:-1, 6:9], normals @ Q.T, atol=1e-5) and np.allclose(f[:, :3], p, atol=1e-6)
+        assert np.array_equal(f[:, 3:6], np.concatenate([feats, feats[:1]])[:, 3:6])
+
+
+def test_training_crops_with_a_neighbour_copy_keep_their_targets(labels):
+    """With the neighbour augmentation on every crop, the foreground is still exactly the instance's points with
+    their model coordinates, and the crops hold more background (the copy) than without it."""
+    from scipy.spatial import cKDTree
+
+    with LabelFile(labels) as lf:
+        tab, f = lf.objects, lf.frame(1)
+        share = {}
+        for chance in (0.0, 1.0):
+            cfg = CropConfig(neighbour=chance, neighbour_offset=(0.5, 0.7), roll_deg=0.0)
+            fgs = []
+            for g in range(len(f.instances)):
+                m = tab.index(int(f.instances.obj_id[g]))
+                dia = float(tab.diameters[m])
+                for seed in range(4):
+                    c = training_crop(f, g, dia, tab.sym_transforms[m], cfg, np.random.default_rng(seed),
+                                      NORMALISATION, augment=True)
+                    p = c["features"][:, :3] * cfg.radius * dia + c["centre"]
+                    fg = c["fg"] > 0
+                    back = (c["coords"][0][fg] * dia) @ f.instances.R[g].T + f.instances.t[g]
+                    assert np.abs(back - p[fg]).max() < 0.006  # the points carry 1 mm noise
+                    own = f.features[f.instance == g, :3]
+                    assert np.median(cKDTree(own).query(p[fg])[0]) < 0.003
+                    fgs.append(fg.mean())
+            share[chance] = np.mean(fgs)
+    assert share[1.0] < 0.9 * share[0.0], share
+
+
 def test_camera_colour_augmentation_spans_real_camera_changes(labels):
     """The "camera" colour augmentation: seeded, in [0, 1], exposure below 0.7 and above 1.3 both drawn, some crops
     grey and some without colour; a training crop with it keeps the points and targets of the geometry."""
