@@ -20,23 +20,29 @@ $A capture-sim --scene linemod --models "$M" --frames 2000 --seed 1 --workers 2 
 $A capture-sim --scene linemod --models "$M" --frames 300  --seed 2 --workers 2 --out "$OUT/lm_test"  --quiet
 $A capture-sim --scene linemod --models "$M" --frames 100  --seed 4 --workers 2 --out "$OUT/lm_val"   --quiet
 $A capture-sim --scene lchf    --models "$M" --frames 150  --seed 3 --workers 2 --out "$OUT/lchf_test" --quiet
+# validation captures that chose the inference settings (RESULTS.md): a second linemod one and an LC-HF-style one
+$A capture-sim --scene linemod --models "$M" --frames 150  --seed 5 --workers 2 --out "$OUT/lm_val2"  --quiet
+$A capture-sim --scene lchf    --models "$M" --frames 120  --seed 6 --workers 2 --out "$OUT/lchf_val" --quiet
 
 # 2. per-point labels (argen label's default: 30000 points per frame)
-for s in lm_train lm_test lm_val lchf_test; do
+for s in lm_train lm_test lm_val lchf_test lm_val2 lchf_val; do
   [ -f "$OUT/$s.h5" ] || $A label "$OUT/$s" --out "$OUT/$s.h5" --quiet
 done
 
 # 3. the default two-stage model: stage 1 (objects and their centres), then stage 2 (pose in crops);
-#    runs/lm8/model.pt holds both (checkpoints/lm8.pt is this file)
+#    runs/lm8/model.pt holds both (checkpoints/lm8.pt is this file); stage 2 keeps its weights every 1100 steps
+#    for the time-to-accuracy curve
 if [ -f runs/lm8/two_stage.yaml ] && [ ! -f runs/lm8/model.pt ]; then
   $D train "$OUT/lm_train.h5" --out runs/lm8 --resume --quiet
 elif [ ! -f runs/lm8/model.pt ]; then
-  $D train "$OUT/lm_train.h5" --out runs/lm8 --quiet
+  $D train "$OUT/lm_train.h5" --out runs/lm8 --set stage2.keep_every=1100 --quiet
 fi
 
 # 4. evaluation with the model's own thresholds: linemod test set with and without ICP, lchf test set (F1)
 $D eval runs/lm8/model.pt "$OUT/lm_test.h5"   --out reports/lm8_test  --icp --quiet
 $D eval runs/lm8/model.pt "$OUT/lchf_test.h5" --out reports/lm8_lchf  --icp --quiet
+# the time-to-accuracy curve: each kept stage-2 snapshot with stage 1, on the test set (docs/img)
+.venv/bin/python examples/linemod/curve.py runs/lm8 "$OUT/lm_test.h5" --out docs/img/time_to_accuracy.png
 
 # 5. the paper's single-shot network, for the side-by-side tables (optional: PAPER=1)
 if [ "${PAPER:-0}" = 1 ]; then
