@@ -68,7 +68,6 @@ class CropPoseConfig:
     fit_points: int = 256
 
 
-@torch.no_grad()
 def crop_subsets(rows: np.ndarray, num_points: int, samples: int, rng: np.random.Generator) -> list[np.ndarray]:
     """``samples`` subsets of a crop's rows (k,), each of ``num_points`` rows (:func:`detector.crops.sample_crop`):
     disjoint while the crop has enough points, then drawn independently. One subset is ``sample_crop``'s."""

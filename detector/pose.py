@@ -276,7 +276,8 @@ def _sq_residuals(R: np.ndarray, t: np.ndarray, m: np.ndarray, p: np.ndarray) ->
 
 def ransac_kabsch(model_pts: np.ndarray, scene_pts: np.ndarray, weights: np.ndarray, threshold: float,
                   rng: np.random.Generator, hypotheses: int = 128, refits: int = 3, keep: int = 1,
-                  score_points: int | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray] | list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
+                  score_points: int | None = None
+                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray] | list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
     """A pose from noisy 3D-3D correspondences: RANSAC over 3-point Kabsch hypotheses, then weighted refits.
 
     model_pts: (n,3) model frame, metres (predicted model coordinates); scene_pts: (n,3) camera frame, metres;
