@@ -15,6 +15,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 
 @dataclass
@@ -212,8 +213,6 @@ def training_crop(frame, g: int, diameter: float, sym_transforms: np.ndarray, cf
                              cfg.neighbour_offset, rng)
         keep = np.sum((p - centre) ** 2, axis=1) <= radius * radius
         if keep.any():  # copied points within 5 mm of a crop point would interpenetrate it: dropped
-            from scipy.spatial import cKDTree
-
             keep[keep] = cKDTree(xyz[rows]).query(p[keep], distance_upper_bound=0.005)[0] >= 0.005
         xyz = np.concatenate([xyz[rows], p[keep]])
         features = np.concatenate([np.asarray(features)[rows], f[keep]])
