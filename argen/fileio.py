@@ -49,6 +49,19 @@ def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
         raise
 
 
+def remove_stray_temps(root: str | os.PathLike) -> int:
+    """Delete the ``.tmp-*`` files that a killed writer left anywhere under ``root``; returns how many.
+
+    Only for a folder that one process owns (a resumed capture's output), never while another writes there.
+    """
+    n = 0
+    for p in Path(root).rglob(".tmp-*"):
+        if p.is_file():
+            p.unlink(missing_ok=True)
+            n += 1
+    return n
+
+
 def _os_error(exc: OSError, path: Path) -> ArgenError:
     if exc.errno in (errno.ENOSPC, errno.EDQUOT, errno.EFBIG):
         why = "file size limit reached" if exc.errno == errno.EFBIG else "disk full"

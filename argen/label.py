@@ -55,7 +55,7 @@ from argen import __version__, bop
 from argen.config import PIXEL_CENTRES, simulation_K
 from argen.errors import ArgenError
 from argen.features import frame_points
-from argen.fileio import read_json, write_json
+from argen.fileio import read_json, remove_stray_temps, write_json
 from argen.h5 import FrameLabels, InstanceTable, LabelFile, LabelWriter, ObjectTable, point_control_points
 from argen.models.objects import ObjectModel, load_models
 
@@ -461,6 +461,10 @@ def _prepare(req: LabelRequest, models_dir: Path) -> Path:
                                  "start again or rerun with the same options")
             shutil.rmtree(partial)
     partial.mkdir(parents=True, exist_ok=True)
+    remove_stray_temps(partial)  # part files a killed run was writing (their chunks are labelled again)
+    # its final file, half-written (atomic_path's name: mkstemp's 8 random characters, so no other file's)
+    for p in req.out.parent.glob(f".tmp-{req.out.stem}-{'?' * 8}{req.out.suffix}"):
+        p.unlink(missing_ok=True)
     if not sig_p.is_file():
         write_json(sig_p, sig)
     return partial

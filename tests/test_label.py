@@ -263,9 +263,16 @@ def test_kill_and_resume_equals_uninterrupted_run(builtin_ds, tmp_path):
             break  # really interrupted (else it finished first: try again)
     assert not out.exists() and first_part.exists()
     assert len(list(first_part.parent.glob("part-*.h5"))) < 3
+    # what a kill inside a write leaves (the kill above rarely hits that window): the resumed run removes them,
+    # but not another output's temporary file in the same folder
+    strays = [first_part.parent / ".tmp-part-000001-abcd1234.h5", tmp_path / f".tmp-{out.stem}-abcd1234.h5"]
+    other = tmp_path / f".tmp-{out.stem}-b-abcd1234.h5"  # of a run writing "{stem}-b.h5"
+    for p in [*strays, other]:
+        p.write_bytes(b"half")
     r = subprocess.run(cmd, capture_output=True, text=True)
     assert r.returncode == 0, r.stderr
     assert "already done" in r.stdout and not first_part.parent.exists()
+    assert not any(p.exists() for p in strays) and other.exists()
     assert_same_contents(ref, out)
 
 

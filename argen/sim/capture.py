@@ -31,7 +31,7 @@ from tqdm import tqdm
 from argen import __version__, bop
 from argen.config import TemplateConfig, simulation_K, to_dict
 from argen.errors import ArgenError
-from argen.fileio import read_json, write_json
+from argen.fileio import read_json, remove_stray_temps, write_json
 from argen.models.objects import ObjectModel, write_models, write_models_eval
 from argen.sim.ar import estimate_board_pose, pose_error
 from argen.sim.board import Board
@@ -264,6 +264,10 @@ def prepare_output(req: CaptureRequest, kind: str = "capture-sim", extra: dict |
                              "or choose another --out")
         _remove_ours(out, req.cfg.output.split)
     out.mkdir(parents=True, exist_ok=True)
+    for d in (out / req.cfg.output.split, out / "models", out / "models_eval"):
+        remove_stray_temps(d)  # what a killed run was writing; its frame is made again below
+    for p in out.glob(".tmp-*"):  # top level: argen.json, capture_log.json, camera.json
+        p.unlink(missing_ok=True)
     meta = {"argen_version": __version__, "kind": kind, "template": req.cfg.name, "seed": req.cfg.seed,
             "frames": req.frames, "split": req.cfg.output.split, "units": "BOP (mm)", **sig,
             "object_names": {str(o.obj_id): o.name for o in req.objects}}
