@@ -57,4 +57,5 @@ if [ "${PAPER:-0}" = 1 ]; then
 fi
 
 # 6. the tables of RESULTS.md (with the paper's numbers beside ours)
-.venv/bin/python examples/linemod/tables.py reports/lm8_test/report.json reports/lm8_lchf/report.json
+SINGLE=(); [ -f reports/lm_test_tau0/report.json ] && SINGLE=(--single-shot reports/lm_test_tau0/report.json)
+.venv/bin/python examples/linemod/tables.py reports/lm8_test/report.json reports/lm8_lchf/report.json "${SINGLE[@]}"

@@ -1,7 +1,7 @@
 """Print the RESULTS.md tables of the LineMOD study from `detector eval` reports, with the paper's numbers.
 
     .venv/bin/python examples/linemod/tables.py reports/lm_test/report.json reports/lchf_test/report.json \
-        [--tau-sweep reports/lm_test_tau0/report.json] [--run runs/lm_cpu]
+        [--single-shot reports/lm_test_tau0/report.json] [--run runs/lm_cpu]
 
 The paper's numbers (Liu et al., Tables II-IV and the LC-HF table) are for the real LineMOD / LC-HF test
 images; ours are for a synthetic held-out capture, so the columns are not the same test.
@@ -25,20 +25,36 @@ def pct(v) -> str:
     return "–" if v is None else f"{100 * v:.1f}"
 
 
-def table_ii(rep: dict) -> str:
-    rows = ["| object | test instances | ours w/o refinement | ours with ICP | paper w/o | paper with ICP |",
-            "|---|---:|---:|---:|---:|---:|"]
+def table_ii(rep: dict, single: dict | None = None) -> str:
+    """Table II layout; ``single``: a report of the paper's single-shot network, shown beside ours."""
+    head = "| object | test instances | ours w/o refinement | ours with ICP |"
+    if single:
+        head += " single-shot w/o | single-shot with ICP |"
+    rows = [head + " paper w/o | paper with ICP |", "|---|---:|---:|---:|" + ("---:|---:|" if single else "")
+            + "---:|---:|"]
+    by_name = {o["name"]: o for o in single["objects"]} if single else {}
+
+    def cells(o: dict | None) -> str:
+        if o is None:
+            return " – | – |"
+        icp = o["add"]["icp"]["0.10"] if o["add"]["icp"] else None
+        return f" {pct(o['add']['noicp']['0.10'])} | {pct(icp)} |"
+
     for o in rep["objects"]:
         p = PAPER_TABLE_II.get(o["name"], (None, None))
-        icp = o["add"]["icp"]["0.10"] if o["add"]["icp"] else None
-        rows.append(f"| {o['name']}{'*' if o['symmetric'] else ''} | {o['num_gt']} | {pct(o['add']['noicp']['0.10'])} | "
-                    f"{pct(icp)} | {p[0] if p[0] is not None else '–'} | {p[1] if p[1] is not None else '–'} |")
+        row = f"| {o['name']}{'*' if o['symmetric'] else ''} | {o['num_gt']} |" + cells(o)
+        if single:
+            row += cells(by_name.get(o["name"]))
+        rows.append(row + f" {p[0] if p[0] is not None else '–'} | {p[1] if p[1] is not None else '–'} |")
     m = rep["mean"]
     mine = [v for k, v in PAPER_TABLE_II.items() if k in {o["name"] for o in rep["objects"]}]
     avg8 = tuple(round(sum(v[i] for v in mine) / len(mine), 1) for i in (0, 1)) if mine else ("–", "–")
-    rows.append(f"| **average** | {sum(o['num_gt'] for o in rep['objects'])} | **{pct(m['noicp']['0.10'])}** | "
-                f"**{pct(m['icp']['0.10']) if m.get('icp') else '–'}** | {avg8[0]} ({PAPER_AVERAGE_13[0]} over 13) | "
-                f"{avg8[1]} ({PAPER_AVERAGE_13[1]} over 13) |")
+    row = (f"| **average** | {sum(o['num_gt'] for o in rep['objects'])} | **{pct(m['noicp']['0.10'])}** | "
+           f"**{pct(m['icp']['0.10']) if m.get('icp') else '–'}** |")
+    if single:
+        sm = single["mean"]
+        row += f" {pct(sm['noicp']['0.10'])} | {pct(sm['icp']['0.10']) if sm.get('icp') else '–'} |"
+    rows.append(row + f" {avg8[0]} ({PAPER_AVERAGE_13[0]} over 13) | {avg8[1]} ({PAPER_AVERAGE_13[1]} over 13) |")
     return "\n".join(rows)
 
 
@@ -93,10 +109,13 @@ def main() -> None:
     ap.add_argument("lm", type=Path, help="report.json of the linemod-template test set (eval with --icp)")
     ap.add_argument("lchf", type=Path, nargs="?", help="report.json of the lchf-template test set")
     ap.add_argument("--run", type=Path, help="training run folder (metrics.csv)")
+    ap.add_argument("--single-shot", type=Path, help="report.json of the paper's single-shot network on the same "
+                    "linemod test set (eval with --icp), shown beside ours")
     args = ap.parse_args()
     lm = json.loads(args.lm.read_text())
+    single = json.loads(args.single_shot.read_text()) if args.single_shot else None
     print(f"### ADD(-S) at 10 % of the diameter (Table II layout), {lm['num_frames']} frames, tau "
-          f"{lm['config']['tau']}\n\n{table_ii(lm)}\n")
+          f"{lm['config']['tau']}\n\n{table_ii(lm, single)}\n")
     print(f"### Thresholds without refinement (Table III layout)\n\n{table_iii(lm)}\n")
     if args.lchf:
         lchf = json.loads(args.lchf.read_text())
