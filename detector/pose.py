@@ -308,8 +308,10 @@ def ransac_kabsch(model_pts: np.ndarray, scene_pts: np.ndarray, weights: np.ndar
         active &= inl.sum(1) >= 3
         if not active.any():
             break
-        R1, t1 = weighted_kabsch_shared(m, p, np.where(inl, w + 1e-9, 0.0))
-        R, t = np.where(active[:, None, None], R1, R), np.where(active[:, None], t1, t)
+        # only the active rows: an inactive one may have no inlier left, and its zero weights would give a NaN
+        # matrix that fails the whole batch's SVD
+        R, t = R.copy(), t.copy()
+        R[active], t[active] = weighted_kabsch_shared(m, p, np.where(inl[active], w + 1e-9, 0.0))
         new = _sq_residuals(R, t, m, p) < threshold * threshold
         inl = np.where(active[:, None], new, inl)
     out = [(R[k], t[k], inl[k]) for k in range(len(best))]

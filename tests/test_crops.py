@@ -225,6 +225,21 @@ def test_ransac_kabsch_recovers_a_pose_with_half_outliers():
     assert np.allclose(np.linalg.det(Rb), 1.0)
 
 
+def test_ransac_keeps_hypotheses_without_inliers_beside_good_ones():
+    """keep > the hypotheses with inliers: those with none keep their 3-point pose (they once made a zero-weight
+    refit whose NaN failed the whole batch's SVD, seen on a real crop)."""
+    rng = np.random.default_rng(7)
+    R, t = Rotation.random(random_state=rng).as_matrix(), rng.normal(size=3)
+    m = rng.normal(size=(50, 3)) * 0.05
+    p = m @ R.T + t
+    p[20:] = t + rng.normal(size=(30, 3)) * 0.05  # 30 of 50 correspondences wrong: most hypotheses have none
+    out = ransac_kabsch(m, p, np.ones(50), 1e-4, rng, hypotheses=128, keep=32)
+    assert len(out) == 32 and all(np.isfinite(Rk).all() and np.isfinite(tk).all() for Rk, tk, _ in out)
+    Rb, tb, inl = out[0]
+    assert np.allclose(Rb, R, atol=1e-6) and np.allclose(tb, t, atol=1e-6) and inl[:20].all()
+    assert any(k[2].sum() < 3 for k in out)  # the case this test is about did occur
+
+
 def test_batched_kabsch_and_fit_measure_equal_their_one_at_a_time_forms():
     """The vectorised refits (weighted_kabsch_shared) and the K-pose fit_residuals give what kabsch and
     fit_residuals give one weighting / one pose at a time, reflections excluded."""
