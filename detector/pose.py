@@ -309,8 +309,7 @@ def ransac_kabsch(model_pts: np.ndarray, scene_pts: np.ndarray, weights: np.ndar
         if not active.any():
             break
         # only the active rows: an inactive one may have no inlier left, and its zero weights would give a NaN
-        # matrix that fails the whole batch's SVD
-        R, t = R.copy(), t.copy()
+        # matrix that fails the whole batch's SVD (R and t are Rh[best]'s own copies, so writing into them is safe)
         R[active], t[active] = weighted_kabsch_shared(m, p, np.where(inl[active], w + 1e-9, 0.0))
         new = _sq_residuals(R, t, m, p) < threshold * threshold
         inl = np.where(active[:, None], new, inl)
