@@ -53,7 +53,8 @@ class EdgeConv(nn.Module):
     ``max_j relu(LN(W1 x_i + W2 (x_j - x_i)))``; the linear map is applied before the gather (``(W1 - W2) x_i +
     W2 x_j``). Without gradients (inference) the max is a running maximum over the k neighbour slices (B, n, out):
     no (B, n, k, out) tensor, and several times faster on a CPU than a gather and a max over that tensor's neighbour
-    axis; training keeps the gather, whose backward is much cheaper than that of k indexing steps."""
+    axis. Training does the same with :class:`_NeighbourMax`, which also keeps which neighbour won for the backward
+    (the design that normalises before the max keeps a gather to the (B, n, k, out) tensor)."""
 
     def __init__(self, c_in: int, c_out: int, norm_before_max: bool = False):
         super().__init__()
@@ -66,14 +67,15 @@ class EdgeConv(nn.Module):
         B, n, k = idx.shape
         b = self.nb_lin(x)  # (B, n, out)
         a = self.self_lin(x) - b
-        if torch.is_grad_enabled():  # training: one gather to (B, n, k, out), whose backward is a cheap scatter
-            nb = torch.gather(b, 1, idx.reshape(B, n * k, 1).expand(-1, -1, b.shape[-1])).reshape(B, n, k, -1)
-            if self.norm_before_max:
-                return torch.relu(self.norm(a[:, :, None, :] + nb).max(dim=2).values)  # = max of the relu
-            return torch.relu(self.norm(a + nb.max(dim=2).values))  # a_i is the same for every neighbour j
-        # inference: a running maximum over the k neighbour slices, the same values several times faster on a CPU
         flat = b.reshape(B * n, -1)
         rows = idx + (torch.arange(B, device=idx.device) * n)[:, None, None]  # (B, n, k) rows of flat
+        if torch.is_grad_enabled():
+            if self.norm_before_max:  # training the first design: one gather to (B, n, k, out)
+                nb = torch.gather(b, 1, idx.reshape(B, n * k, 1).expand(-1, -1, b.shape[-1])).reshape(B, n, k, -1)
+                return torch.relu(self.norm(a[:, :, None, :] + nb).max(dim=2).values)  # = max of the relu
+            # a_i is the same for every neighbour j, so only the neighbours' max is needed: _NeighbourMax
+            return torch.relu(self.norm(a + _NeighbourMax.apply(flat, rows.reshape(B * n, k)).reshape(B, n, -1)))
+        # inference: a running maximum over the k neighbour slices, the same values several times faster on a CPU
         if self.norm_before_max:
             out = torch.relu(self.norm(a + flat[rows[:, :, 0]]))
             for j in range(1, k):
@@ -83,6 +85,35 @@ class EdgeConv(nn.Module):
         for j in range(1, k):
             m = torch.maximum(m, flat[rows[:, :, j]])
         return torch.relu(self.norm(a + m))
+
+
+class _NeighbourMax(torch.autograd.Function):
+    """``out[i] = max_j b[rows[i, j]]`` per channel, for training: the forward is a running maximum over the k
+    neighbour columns that remembers which column won each channel (uint8), and the backward adds each output
+    gradient to the winning row. The same values and gradients as a gather to (M, k, C) followed by a max over k
+    (ties go to the first neighbour in both), without that tensor, the zeros of its max's backward, or the scatter
+    of its gather's backward: the edge-convolutions' share of a training step falls several times on a CPU.
+
+    b: (R, C) the rows' features; rows: (M, k) int64 row indices into b. Returns (M, C)."""
+
+    @staticmethod
+    def forward(ctx, b: torch.Tensor, rows: torch.Tensor) -> torch.Tensor:
+        m = b.index_select(0, rows[:, 0])
+        won = torch.zeros(m.shape, dtype=torch.uint8, device=b.device)
+        for j in range(1, rows.shape[1]):
+            cand = b.index_select(0, rows[:, j])
+            won.masked_fill_(cand > m, j)
+            torch.maximum(m, cand, out=m)
+        ctx.save_for_backward(rows, won)
+        ctx.num_rows = b.shape[0]
+        return m
+
+    @staticmethod
+    def backward(ctx, grad: torch.Tensor):
+        rows, won = ctx.saved_tensors
+        out = torch.zeros(ctx.num_rows, grad.shape[1], dtype=grad.dtype, device=grad.device)
+        out.scatter_add_(0, rows.gather(1, won.long()), grad.contiguous())
+        return out, None
 
 
 def mlp(sizes: list[int]) -> nn.Sequential:

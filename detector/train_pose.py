@@ -42,7 +42,10 @@ POSE_METRICS = ["step", "epoch", "loss", "fg", "coord", "fg_acc", "crops", "lr",
 class PoseTrainConfig:
     """A stage-2 run. steps: optimiser steps; batch_frames: frames per batch (each gives its instances' crops);
     keep_every: besides ``last.pt``, keep the weights every this many steps as ``step_NNNNNN.pt`` (0 = none;
-    each is a stage-2 checkpoint without the optimiser state, about 1 MB, e.g. for a time-to-accuracy curve)."""
+    each is a stage-2 checkpoint without the optimiser state, about 1 MB, e.g. for a time-to-accuracy curve);
+    cache_mb: the data process keeps the frames' crop regions in memory up to this many MB and cuts later epochs'
+    crops from there (:class:`detector.data.CropDataset`; the same crops; about 0.4 MB a frame of a 30000-point label
+    file of the linemod template; 0 = read every frame from the file each time)."""
 
     crop: CropConfig = field(default_factory=CropConfig)
     net: CropNetConfig = field(default_factory=CropNetConfig)
@@ -60,6 +63,7 @@ class PoseTrainConfig:
     checkpoint_every: int = 200
     keep_every: int = 0
     num_workers: int = 1
+    cache_mb: float = 2048.0
     device: str = "auto"
     seed: int = 0
 
@@ -96,7 +100,8 @@ def train_pose(cfg: PoseTrainConfig, train_path: str | Path, out_dir: str | Path
     out_dir = Path(out_dir)
     last_path = run_checkpoint(out_dir, resume)
     device = resolve_device(cfg.device)
-    ds = CropDataset(train_path, cfg.crop, augment=cfg.augment, seed=cfg.seed, class_ids=cfg.class_ids)
+    ds = CropDataset(train_path, cfg.crop, augment=cfg.augment, seed=cfg.seed, class_ids=cfg.class_ids,
+                     cache_mb=cfg.cache_mb)
     with torch.random.fork_rng(devices=[device] if device.type == "cuda" else []):
         torch.manual_seed(cfg.seed)
         net = CropNet(cfg.net, len(ds.class_ids)).to(device)
@@ -187,6 +192,8 @@ def load_pose_config(data: dict | None, overrides: dict | None = None) -> PoseTr
     cfg = config_from_dict(PoseTrainConfig, d)
     if cfg.steps < 1 or cfg.batch_frames < 1 or cfg.lr <= 0 or cfg.crop.num_points < 3 or cfg.crop.radius <= 0:
         raise DetectorError("stage-2 config: steps, batch_frames, lr, crop.num_points and crop.radius must be positive")
+    if cfg.cache_mb < 0:
+        raise DetectorError(f"stage-2 config: cache_mb must be 0 (no cache) or more, got {cfg.cache_mb}")
     lo, hi = cfg.crop.neighbour_offset
     if not (0.0 <= cfg.crop.neighbour <= 1.0 and 0.0 < lo <= hi):
         raise DetectorError("stage-2 config: crop.neighbour must lie in [0, 1] and crop.neighbour_offset be "

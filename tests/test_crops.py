@@ -11,9 +11,10 @@ from typer.testing import CliRunner
 from argen.cli.app import app as argen_app
 from argen.h5 import LabelFile
 from argen.label import LabelConfig, LabelRequest, run_label
-from detector.cropnet import CropNet, CropNetConfig, EdgeConv, crop_loss
+from detector.cropnet import CropNet, CropNetConfig, EdgeConv, _NeighbourMax, crop_loss
 from detector.crops import (
     CropConfig,
+    crop_region,
     jittered_centre,
     model_coordinates,
     roll_about_ray,
@@ -21,7 +22,9 @@ from detector.crops import (
     training_crop,
 )
 from detector.data import NORMALISATION, CropDataset, collate_crops
+from detector.errors import DetectorError
 from detector.pose import kabsch_batch, ransac_kabsch
+from detector.train_pose import load_pose_config
 
 
 @pytest.fixture(scope="module")
@@ -281,6 +284,52 @@ def test_crop_loss_takes_the_best_symmetry_and_ignores_padding():
     out["coords"][0] = coords[0, 2]  # the padded 3rd symmetry does not count
     _, parts = crop_loss(out, fg, coords, mask)
     assert parts["coord"] > 0.1
+
+
+def test_training_neighbour_max_has_the_gather_and_max_values_and_gradients():
+    # the training path's running maximum against the plain (M, k, C) gather and max, ties included
+    torch.manual_seed(0)
+    b = torch.randn(40, 6, dtype=torch.float64)
+    b[7] = b[3]  # two rows with equal features: ties between neighbours
+    rows = torch.randint(0, 40, (25, 5))
+    rows[0] = torch.tensor([3, 7, 3, 7, 1])
+    w = torch.randn(25, 6, dtype=torch.float64)
+    b1, b2 = b.clone().requires_grad_(True), b.clone().requires_grad_(True)
+    ref = b1[rows].max(dim=1).values
+    out = _NeighbourMax.apply(b2, rows)
+    (ref * w).sum().backward()
+    (out * w).sum().backward()
+    assert torch.equal(out, ref) and torch.equal(b2.grad, b1.grad)
+    assert float(b2.grad[[3, 7]].abs().sum()) > 0 and torch.isclose(b2.grad.sum(), w.sum())  # all of it lands
+    assert torch.autograd.gradcheck(_NeighbourMax.apply, (torch.randn(12, 3, dtype=torch.float64, requires_grad=True),
+                                                          torch.randint(0, 12, (8, 4))))
+
+
+def test_crop_region_cache_gives_the_same_crops_and_respects_its_size(labels):
+    cfg = CropConfig(num_points=128, neighbour=0.5)
+    plain = CropDataset(labels, cfg, augment=True, seed=3)
+    cached = CropDataset(labels, cfg, augment=True, seed=3, cache_mb=64)
+    small = CropDataset(labels, cfg, augment=True, seed=3, cache_mb=1e-4)  # holds no frame
+    for epoch in range(3):
+        for i in range(len(plain)):
+            a, b, c = plain[(epoch, i)], cached[(epoch, i)], small[(epoch, i)]
+            assert all(torch.equal(a[k], b[k]) and torch.equal(a[k], c[k]) for k in a), (epoch, i)
+    assert len(cached._cache) == len(plain) and not small._cache
+    assert cached._cached == sum(r.nbytes for r in cached._cache.values())
+    with LabelFile(labels) as lf:
+        frame = lf.frame(0)
+        region = crop_region(frame, plain.diameters, cfg)
+        # every point of the region is in the frame, in the frame's order, and it is smaller than the frame
+        assert len(region.features) < len(frame.features)
+        where = {r.tobytes(): i for i, r in enumerate(frame.features)}
+        rows = np.array([where[r.tobytes()] for r in region.features])
+        assert np.all(np.diff(rows) > 0) and np.array_equal(frame.instance[rows], region.instance)
+        # only instances of the listed objects reach into it
+        none = crop_region(frame, {}, cfg)
+        assert len(none.features) == 0
+    assert load_pose_config(None).cache_mb > 0  # on by default
+    with pytest.raises(DetectorError, match="cache_mb"):
+        load_pose_config(None, {"cache_mb": -1})
 
 
 def test_crop_dataset_items_and_a_few_steps_lower_the_loss(labels):
