@@ -49,7 +49,7 @@ class PoseTrainConfig:
 
     crop: CropConfig = field(default_factory=CropConfig)
     net: CropNetConfig = field(default_factory=CropNetConfig)
-    steps: int = 7700
+    steps: int = 13000
     batch_frames: int = 8
     lr: float = 2e-3
     weight_decay: float = 1e-4

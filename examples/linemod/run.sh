@@ -30,12 +30,12 @@ for s in lm_train lm_test lm_val lchf_test lm_val2 lchf_val; do
 done
 
 # 3. the default two-stage model: stage 1 (objects and their centres), then stage 2 (pose in crops);
-#    runs/lm8/model.pt holds both (checkpoints/lm8.pt is this file); stage 2 keeps its weights every 1100 steps
+#    runs/lm8/model.pt holds both (checkpoints/lm8.pt is this file); stage 2 keeps its weights every 1300 steps
 #    for the time-to-accuracy curve
 if [ -f runs/lm8/two_stage.yaml ] && [ ! -f runs/lm8/model.pt ]; then
   $D train "$OUT/lm_train.h5" --out runs/lm8 --resume --quiet
 elif [ ! -f runs/lm8/model.pt ]; then
-  $D train "$OUT/lm_train.h5" --out runs/lm8 --set stage2.keep_every=1100 --quiet
+  $D train "$OUT/lm_train.h5" --out runs/lm8 --set stage2.keep_every=1300 --quiet
 fi
 
 # 4. evaluation with the model's own thresholds: linemod test set with and without ICP, lchf test set (F1)
