@@ -67,13 +67,12 @@ class EdgeConv(nn.Module):
         B, n, k = idx.shape
         b = self.nb_lin(x)  # (B, n, out)
         a = self.self_lin(x) - b
+        if torch.is_grad_enabled() and self.norm_before_max:  # training the first design: a gather to (B, n, k, out)
+            nb = torch.gather(b, 1, idx.reshape(B, n * k, 1).expand(-1, -1, b.shape[-1])).reshape(B, n, k, -1)
+            return torch.relu(self.norm(a[:, :, None, :] + nb).max(dim=2).values)  # = max of the relu
         flat = b.reshape(B * n, -1)
         rows = idx + (torch.arange(B, device=idx.device) * n)[:, None, None]  # (B, n, k) rows of flat
-        if torch.is_grad_enabled():
-            if self.norm_before_max:  # training the first design: one gather to (B, n, k, out)
-                nb = torch.gather(b, 1, idx.reshape(B, n * k, 1).expand(-1, -1, b.shape[-1])).reshape(B, n, k, -1)
-                return torch.relu(self.norm(a[:, :, None, :] + nb).max(dim=2).values)  # = max of the relu
-            # a_i is the same for every neighbour j, so only the neighbours' max is needed: _NeighbourMax
+        if torch.is_grad_enabled():  # a_i is the same for every neighbour j, so only the neighbours' max is needed
             return torch.relu(self.norm(a + _NeighbourMax.apply(flat, rows.reshape(B * n, k)).reshape(B, n, -1)))
         # inference: a running maximum over the k neighbour slices, the same values several times faster on a CPU
         if self.norm_before_max:

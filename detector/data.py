@@ -363,6 +363,7 @@ class CropDataset(FrameSource):
         self.sym = {int(i): np.asarray(s, np.float32) for i, s in zip(ids, self.objects["sym_transforms"])}
         self.diameters = {int(i): float(d) for i, d in zip(ids, self.objects["diameters"])}
         self.max_sym = max(len(self.sym[c]) for c in self.class_ids)
+        self._crop_diameters = {c: self.diameters[c] for c in self.class_ids}  # the objects whose crops are cut
         self.cache_bytes = int(max(cache_mb, 0.0) * 2 ** 20)
         self._cache: dict[int, CropFrame] = {}
         self._cached = 0
@@ -379,8 +380,7 @@ class CropDataset(FrameSource):
         if region is not None:
             return region, self.rng(epoch, index), int(index)
         frame, rng, index = self.read(key)
-        used = {c: self.diameters[c] for c in self.class_ids}
-        region = crop_region(frame, used, self.crop_cfg)
+        region = crop_region(frame, self._crop_diameters, self.crop_cfg)
         if self._cached + region.nbytes <= self.cache_bytes:
             self._cache[index] = region
             self._cached += region.nbytes
