@@ -295,7 +295,7 @@ def _gt_full_masks(ds, scene, im_id, K, width, height):
 def test_objects_cut_by_the_image_edge_count_their_whole_silhouette(tmp_path):
     """BOP toolkit's calc_gt_info rule: px_count_all, visib_fract and bbox_obj cover the whole silhouette, checked
     against the ground truth rendered on a canvas 3 x the image each way."""
-    ds = _capture(tmp_path, "near", "--frames", "6", "--seed", "3", "--set", "camera.distance=[0.35,0.45]")
+    ds = _capture(tmp_path, "near", "--frames", "8", "--seed", "3", "--set", "camera.distance=[0.4,0.5]")
     cut = 0
     for sid in bop.list_scenes(ds, "train_pbr"):
         sc = bop.load_scene(ds, "train_pbr", sid)

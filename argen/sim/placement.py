@@ -51,6 +51,18 @@ def separation(a: np.ndarray, b: np.ndarray) -> float:
     return best
 
 
+def beside(other: np.ndarray, footprint: np.ndarray, direction: np.ndarray, gap: float) -> np.ndarray:
+    """(2,) shift that puts ``footprint`` next to ``other`` along ``direction``, ``gap`` metres apart.
+
+    other, footprint: (K,2), (L,2) convex polygons, metres; direction: (2,) unit vector from ``other``'s centroid.
+    After the shift their projections on ``direction`` are exactly ``gap`` apart, so for gap > 0 they do not
+    overlap; ``footprint`` is centred on ``other``'s centroid line along ``direction``.
+    """
+    c = other.mean(axis=0)
+    reach = (other @ direction).max() - c @ direction - (footprint @ direction).min() + gap
+    return c + direction * reach - footprint.mean(axis=0) + (footprint.mean(axis=0) @ direction) * direction
+
+
 def resting_transform(obj: ObjectModel, pose_index: int, n_poses: int) -> np.ndarray:
     """(4,4) transform that puts ``obj`` in its resting pose: lowest point at z=0, footprint centred."""
     key = ("rest", pose_index, n_poses)
@@ -111,8 +123,14 @@ def place_instances(
             pose_idx = int(rng.choice(len(probs), p=probs))
             T_rest = resting_transform(obj, pose_idx, cfg.stable_poses)
             yaw = rng.uniform(0.0, 2 * np.pi)
-            xy = rng.uniform(-half_extent, half_extent, size=2)
             T = _rz(yaw) @ T_rest
+            if placed and rng.random() < cfg.beside:
+                a = rng.uniform(0.0, 2 * np.pi)
+                other = placed[int(rng.integers(len(placed)))].footprint
+                xy = beside(other, footprint_of(obj, T), np.array([np.cos(a), np.sin(a)]),
+                            cfg.min_gap + 0.001 + rng.uniform(0.0, 0.02))
+            else:
+                xy = rng.uniform(-half_extent, half_extent, size=2)
             T[:2, 3] += xy
             fp = footprint_of(obj, T)
             if fp.min() < -half_extent or fp.max() > half_extent:
