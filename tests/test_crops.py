@@ -635,10 +635,9 @@ def busiest_frame(lf):
     return tab, ObjectInfo.from_table(tab), [int(i) for i in tab.ids], f
 
 
-def test_third_crop_only_where_the_second_still_moved(labels):
-    """recentre 2 cuts a third crop; with recentre_min_shift only around the centres that the second crop still
-    moved by more than that share of the diameter. On true labels the second crop's pose is exact, so no crop
-    moves and the third pass is skipped, with the same poses."""
+def test_each_recentre_cuts_every_crop_again(labels):
+    """recentre N cuts each crop N more times around its latest pose's centre. On true labels the second crop's
+    pose is already exact, so a third crop gives the same poses."""
     from detector.infer import CropPoseConfig, CropPoser
 
     cfg = CropConfig(num_points=256)
@@ -654,16 +653,15 @@ def test_third_crop_only_where_the_second_still_moved(labels):
             dets.append(centre_detection(objs, int(inst.obj_id[g]), c))
         assert len(dets) >= 2
         crops, poses = {}, {}
-        for shift in (0.0, 0.04):
+        for recentre in (1, 2):
             net = TrueCropNet(f, tab, ids, cfg)
             seen = []
             net.register_forward_hook(lambda mod, args, out: seen.append(len(args[1])))
-            poser = CropPoser(net, ids, objs, cfg, NORMALISATION, CropPoseConfig(recentre=2, recentre_min_shift=shift))
+            poser = CropPoser(net, ids, objs, cfg, NORMALISATION, CropPoseConfig(recentre=recentre))
             out = poser(dets, f.features)
-            crops[shift], poses[shift] = seen, [(d.R, d.t) for d in out]
-    assert crops[0.0] == [len(dets)] * 3  # every crop three times
-    assert crops[0.04] == [len(dets)] * 2  # the settled ones not a third time
-    for (R0, t0), (R1, t1) in zip(poses[0.0], poses[0.04]):
+            crops[recentre], poses[recentre] = seen, [(d.R, d.t) for d in out]
+    assert crops[1] == [len(dets)] * 2 and crops[2] == [len(dets)] * 3
+    for (R0, t0), (R1, t1) in zip(poses[1], poses[2]):
         assert np.abs(t0 - t1).max() < 2e-3 and np.abs(R0 - R1).max() < 0.05
 
 

@@ -22,7 +22,6 @@ def register(app: typer.Typer) -> None:
         icp: bool = typer.Option(False, "--icp", help="Also refine with ICP (Table II 'with refinement')."),
         tau: Optional[float] = typer.Option(None, "--tau", help="Confidence threshold (default: the model's own, "
                                                                 "else the paper's 0.8)."),
-        cell: float = typer.Option(0.02, "--cell", help="Voting voxel size, metres."),
         min_score: Optional[float] = typer.Option(None, "--min-score",
                                                   help="Drop detections scoring less (default: the model's own)."),
         min_visib: float = typer.Option(0.1, "--min-visib", help="Ignore instances less visible than this."),
@@ -44,7 +43,7 @@ def register(app: typer.Typer) -> None:
         from detector.infer import checkpoint_objects, checkpoint_pose_config, checkpoint_poser, network_predictor
 
         ckpt = load_checkpoint(checkpoint, device)
-        cfg = checkpoint_pose_config(ckpt, tau, cell, icp, min_score)
+        cfg = checkpoint_pose_config(ckpt, tau, icp, min_score)
         with open_label_file(data) as lf:
             n = lf.num_frames
         poser = checkpoint_poser(ckpt, checkpoint_objects(ckpt)[0], device, seed)
@@ -69,7 +68,6 @@ def register(app: typer.Typer) -> None:
         icp: bool = typer.Option(False, "--icp", help="Refine with ICP."),
         tau: Optional[float] = typer.Option(None, "--tau", help="Confidence threshold (default: the model's own, "
                                                                 "else the paper's 0.8)."),
-        cell: float = typer.Option(0.02, "--cell", help="Voting voxel size, metres."),
         min_score: Optional[float] = typer.Option(None, "--min-score",
                                                   help="Drop detections scoring less (default: the model's own)."),
         device: str = typer.Option("cpu", "--device", help="torch device."),
@@ -82,7 +80,7 @@ def register(app: typer.Typer) -> None:
         from detector.predict import load_input, predict
 
         ckpt = load_checkpoint(checkpoint, device)
-        cfg = checkpoint_pose_config(ckpt, tau, cell, icp, min_score)
+        cfg = checkpoint_pose_config(ckpt, tau, icp, min_score)
         inp = load_input(input, K=K, depth_scale=depth_scale, camera=camera, rgb=rgb, seed=seed)
         objects, names = checkpoint_objects(ckpt)
         res = predict(network_predictor(ckpt, seed), inp, objects, out, cfg, names,
