@@ -267,8 +267,13 @@ def read_rgb(path: str | os.PathLike) -> np.ndarray:
 
 
 def read_depth(path: str | os.PathLike, depth_scale: float) -> np.ndarray:
-    """Read a BOP depth PNG: (H,W) float32 metres, 0 = missing."""
-    img = _read_image(Path(path), cv2.IMREAD_ANYDEPTH)
+    """Read a BOP depth PNG: (H,W) float32 metres, 0 = missing. BOP depth is one 16-bit channel; anything else (an
+    8-bit colour or grey image given as depth) is an ArgenError, not depths of at most 255 units."""
+    img = _read_image(Path(path), cv2.IMREAD_UNCHANGED)
+    if img.dtype != np.uint16 or img.ndim != 2:
+        what = f"{img.shape[2]}-channel " if img.ndim == 3 else ""
+        raise ArgenError(f"{path} is a {what}{img.dtype.itemsize * 8}-bit image, not a depth image (one 16-bit "
+                         "channel)")
     return img.astype(np.float32) * np.float32(depth_scale / MM_PER_M)
 
 

@@ -325,6 +325,25 @@ def checkpoint_objects(ckpt) -> tuple[ObjectInfo, dict[int, str]]:
     return ObjectInfo.from_table(o), {int(i): str(n) for i, n in zip(o["ids"], o["names"])}
 
 
+def check_label_objects(ckpt, table) -> None:
+    """A label file to score a checkpoint on must show it objects it learned: the two share at least one object
+    id, and a shared id is the same object (same diameter, to 0.1 %; ids alone say little: the built-in stand-ins
+    and the LineMOD objects share ids 1-5). table: the label file's ``argen.h5.ObjectTable``. Objects that only the
+    label file has are allowed (a test set of more objects); their instances count as missed."""
+    o = ckpt.objects
+    learned = {int(i): (str(n), float(d)) for i, n, d in zip(o["ids"], o["names"], o["diameters"])}
+    shared = [int(i) for i in table.ids if int(i) in learned]
+    if not shared:
+        raise DetectorError("the label file shares no object with the model (label file: "
+                            f"{', '.join(f'{n} ({int(i)})' for i, n in zip(table.ids, table.names))}; model: "
+                            f"{', '.join(f'{n} ({i})' for i, (n, _) in learned.items())})")
+    for i, n, d in zip(table.ids, table.names, table.diameters):
+        if int(i) in learned and abs(float(d) - learned[int(i)][1]) > 1e-3 * learned[int(i)][1]:
+            name, dia = learned[int(i)]
+            raise DetectorError(f"object {int(i)} of the label file ({n}, diameter {1000 * float(d):.1f} mm) is not "
+                                f"the model's object {int(i)} ({name}, {1000 * dia:.1f} mm)")
+
+
 def pose_config(tau: float, icp: bool, base: PoseConfig | None = None) -> PoseConfig:
     """A PoseConfig from CLI options, checked; ``base`` gives the other settings."""
     if not 0 <= tau <= 1:

@@ -115,6 +115,17 @@ def test_depth_png_round_trip(tmp_path):
         bop.write_depth(tmp_path / "far.png", np.full((2, 2), 7.0, np.float32), 0.1)
 
 
+def test_depth_must_be_one_16_bit_channel(tmp_path):
+    """An 8-bit image read as depth would be depths of at most 255 units (a few cm): refused."""
+    import cv2
+
+    img = np.random.default_rng(1).integers(0, 255, (6, 8, 3), dtype=np.uint8)
+    for name, data in (("colour.png", img), ("grey.png", img[:, :, 0]), ("rgb16.png", img.astype(np.uint16) * 200)):
+        cv2.imwrite(str(tmp_path / name), data)
+        with pytest.raises(ArgenError, match=f"{name} is a .*-bit image, not a depth image"):
+            bop.read_depth(tmp_path / name, 1.0)
+
+
 def test_corrupt_scene_json_is_a_clear_error(tmp_path):
     d = bop.scene_dir(tmp_path, "test", 0)
     d.mkdir(parents=True)

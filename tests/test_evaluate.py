@@ -255,6 +255,64 @@ def test_cli_eval_and_predict_with_a_random_network(random_checkpoint, dataset, 
     assert r.exit_code == 2 and "detector: error:" in r.output and len(r.output.strip().splitlines()) == 1
 
 
+def assert_one_line_error(r, *words: str) -> None:
+    lines = r.stderr.strip().splitlines()
+    assert r.exit_code == 2 and len(lines) == 1 and lines[0].startswith("detector: error: "), r.output
+    assert all(w in lines[0] for w in words), lines[0]
+
+
+@pytest.mark.parametrize("args, words", [
+    (["--frames", "-3"], ["--frames", "at least 1"]),
+    (["--frames", "0"], ["--frames", "at least 1"]),
+    (["--min-visib", "1.5"], ["--min-visib"]),
+    (["--tau", "-0.1"], ["--tau"]),
+    (["--min-score", "2"], ["--min-score"]),
+])
+def test_eval_refuses_bad_options_in_one_line(random_checkpoint, label_file, tmp_path, args, words):
+    from detector.cli.app import app
+
+    r = CliRunner().invoke(app, ["eval", str(random_checkpoint), str(label_file), "--out", str(tmp_path / "rep"),
+                                 "--quiet", *args])
+    assert_one_line_error(r, *words)
+    assert not (tmp_path / "rep").exists()
+
+
+def test_eval_refuses_a_label_file_of_other_objects(random_checkpoint, label_file, tmp_path):
+    """The model learned objects by id; a label file whose ids are other objects (another model under the same id)
+    or none of the model's would be scored against the wrong models: refused. Its objects are the label file's."""
+    from detector.checkpoint import atomic_torch_save, read_checkpoint
+    from detector.cli.app import app
+
+    payload = read_checkpoint(random_checkpoint)
+    for name, change, words in [
+        ("bigger.pt", lambda o: {**o, "diameters": [1.5 * d for d in o["diameters"]]}, ["is not the model's object"]),
+        ("other-ids.pt", lambda o: {**o, "ids": [100 + i for i in o["ids"]]}, ["shares no object"]),
+    ]:
+        atomic_torch_save({**payload, "objects": change(payload["objects"])}, tmp_path / name)
+        r = CliRunner().invoke(app, ["eval", str(tmp_path / name), str(label_file), "--out", str(tmp_path / "rep"),
+                                     "--quiet", "--frames", "1"])
+        assert_one_line_error(r, *words)
+    assert not (tmp_path / "rep").exists()
+
+
+def test_predict_refuses_a_colour_png_as_depth(random_checkpoint, dataset, tmp_path):
+    """An 8-bit image is not a depth image (BOP depth: one 16-bit channel); taken as depth in millimetres it holds
+    nothing within reach and would silently give no detections."""
+    import cv2
+
+    from argen import bop
+    from detector.cli.app import app
+
+    ds, _ = dataset
+    rgb = bop.read_rgb(bop.rgb_path(ds, "train_pbr", 0, bop.load_scene(ds, "train_pbr", 0).im_ids[0]))
+    for name, img in (("colour.png", rgb), ("grey.png", rgb[:, :, 0])):
+        cv2.imwrite(str(tmp_path / name), img)
+        r = CliRunner().invoke(app, ["predict", str(random_checkpoint), str(tmp_path / name), "--K", "572,573,325,242",
+                                     "--out", str(tmp_path / "pred")])
+        assert_one_line_error(r, name, "8-bit", "not a depth image")
+    assert not (tmp_path / "pred").exists()
+
+
 @pytest.fixture(scope="session")
 def lchf_file(tmp_path_factory):
     """2 noise-free frames of the lchf template: several instances of one object per frame."""

@@ -8,6 +8,7 @@ from typing import Optional
 import typer
 
 from detector.cli.common import user_errors
+from detector.errors import DetectorError
 
 
 def register(app: typer.Typer) -> None:
@@ -40,15 +41,23 @@ def register(app: typer.Typer) -> None:
         from detector.checkpoint import load_checkpoint
         from detector.data import open_label_file
         from detector.evaluate import evaluate
-        from detector.infer import checkpoint_objects, checkpoint_pose_config, checkpoint_poser, network_predictor
+        from detector.infer import (check_label_objects, checkpoint_objects, checkpoint_pose_config, checkpoint_poser,
+                                    network_predictor)
 
+        if frames is not None and frames < 1:
+            raise DetectorError(f"--frames must be at least 1, got {frames}")
+        if not 0 <= min_visib <= 1:
+            raise DetectorError(f"--min-visib is a visible fraction in [0, 1], got {min_visib}")
         ckpt = load_checkpoint(checkpoint, device)
         cfg = checkpoint_pose_config(ckpt, tau, icp, min_score)
         with open_label_file(data) as lf:
             n = lf.num_frames
+            if n == 0:
+                raise DetectorError(f"{data} holds no frames")
+            check_label_objects(ckpt, lf.objects)
         poser = checkpoint_poser(ckpt, checkpoint_objects(ckpt)[0], device, seed)
         s = evaluate(network_predictor(ckpt, seed), data, out, icp=icp, cfg=cfg, device=device,
-                     frames=list(range(min(n, frames) if frames else n)), min_visib=min_visib, progress=not quiet,
+                     frames=list(range(min(n, frames or n))), min_visib=min_visib, progress=not quiet,
                      poser=poser, method=method, dataset_name=dataset_name)
         key = "icp" if icp else "noicp"
         typer.echo(f"ADD@10%: {100 * s['mean'][key]['0.10']:.1f} %  F1@15%: {100 * s['f1'][key]['f1']:.1f} %  "
