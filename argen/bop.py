@@ -481,11 +481,6 @@ class BopScene:
     gt_infos: dict[int, list[dict]]
 
     @property
-    def max_rotation_correction(self) -> float:
-        """The largest entry change that projecting this scene's ground-truth rotations onto SO(3) made."""
-        return max((g.R_correction for gts in self.gts.values() for g in gts), default=0.0)
-
-    @property
     def im_ids(self) -> list[int]:
         """Image ids that have both a camera and a ground truth entry, sorted."""
         return sorted(set(self.cameras) & set(self.gts))

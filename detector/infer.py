@@ -223,7 +223,7 @@ class Predictions:
 
     xyz: (K,3) float metres; class_probs: (K,C+1) float, column 0 background, column c object ``class_ids[c-1]``;
     class_ids: C object ids; control_points: (K,9,3) float metres (point + offsets); confidence: (K,) in [0,1];
-    point_index: (K,) int64 input row of each point; timings: seconds spent, e.g. {"sampling", "network"}.
+    timings: seconds spent, e.g. {"sampling", "network"}.
     """
 
     xyz: np.ndarray
@@ -231,7 +231,6 @@ class Predictions:
     class_ids: list[int]
     control_points: np.ndarray
     confidence: np.ndarray
-    point_index: np.ndarray
     timings: dict = field(default_factory=dict)
 
     @property
@@ -257,7 +256,7 @@ def oracle_predictor(num_points: int | None = None, seed: int = 0) -> Predictor:
         cls[frame.semantic[rows] == 0] = 0
         probs = np.eye(len(ids) + 1, dtype=np.float32)[cls]
         return Predictions(frame.features[rows, :3].astype(np.float64), probs, ids,
-                           frame.control_points[rows].astype(np.float64), np.ones(len(rows)), rows.astype(np.int64))
+                           frame.control_points[rows].astype(np.float64), np.ones(len(rows)))
 
     return predict
 
@@ -289,7 +288,7 @@ def network_predictor(checkpoint, seed: int = 0, device: str | None = None) -> P
         xyz = np.asarray(frame.features, np.float64)[rows[kp], :3]  # metres, exactly the input points
         offsets = out["offsets"][0].double().cpu().numpy()
         return Predictions(xyz, torch.softmax(out["logits"][0].float(), -1).cpu().numpy(), list(checkpoint.class_ids),
-                           xyz[:, None, :] + offsets, out["confidence"][0].double().cpu().numpy(), rows[kp],
+                           xyz[:, None, :] + offsets, out["confidence"][0].double().cpu().numpy(),
                            {"sampling": t1 - t0, "network": t2 - t1})
 
     return predict

@@ -67,8 +67,7 @@ def test_oracle_with_wrong_offsets_is_scored_as_wrong(label_file, tmp_path):
 
     def shifted(frame):
         p = base(frame)
-        return Predictions(p.xyz, p.class_probs, p.class_ids, p.control_points + [0.03, 0, 0], p.confidence,
-                           p.point_index)
+        return Predictions(p.xyz, p.class_probs, p.class_ids, p.control_points + [0.03, 0, 0], p.confidence)
 
     s = evaluate(shifted, label_file, tmp_path, icp=False)
     errs = np.array([r["noicp"] for r in s["instances"]])
@@ -119,7 +118,7 @@ def gt_predictor(ds, scene_id, im_id):
         ids = sorted(models)
         probs = np.eye(len(ids) + 1)[np.searchsorted(ids, obj) + 1]
         probs[obj == 0] = np.eye(len(ids) + 1)[0]
-        return Predictions(xyz, probs, ids, cps, np.ones(len(xyz)), np.arange(len(xyz)))
+        return Predictions(xyz, probs, ids, cps, np.ones(len(xyz)))
 
     return predict, models, gts
 
@@ -338,10 +337,9 @@ def test_oracle_multi_instance_f1_and_a_missed_instance(lchf_file, tmp_path):
     base = oracle_predictor()
 
     def drop_first_instance(frame):  # the network misses instance 0 of every frame
-        p = base(frame)
-        keep = frame.instance[p.point_index] != 0
-        return Predictions(p.xyz[keep], p.class_probs[keep], p.class_ids, p.control_points[keep], p.confidence[keep],
-                           p.point_index[keep])
+        p = base(frame)  # all the frame's points, in its order
+        keep = frame.instance != 0
+        return Predictions(p.xyz[keep], p.class_probs[keep], p.class_ids, p.control_points[keep], p.confidence[keep])
 
     s2 = evaluate(drop_first_instance, lchf_file, tmp_path / "b")
     f = s2["f1"]["noicp"]
@@ -355,7 +353,7 @@ def test_a_predictor_that_finds_nothing_scores_zero(label_file, tmp_path):
         p = base(frame)
         probs = np.zeros_like(p.class_probs)
         probs[:, 0] = 1
-        return Predictions(p.xyz, probs, p.class_ids, p.control_points, p.confidence, p.point_index)
+        return Predictions(p.xyz, probs, p.class_ids, p.control_points, p.confidence)
 
     s = evaluate(background, label_file, tmp_path, icp=True)
     assert s["mean"]["noicp"]["0.10"] == 0.0 and s["mean"]["icp"]["0.10"] == 0.0
