@@ -21,7 +21,7 @@ from detector.errors import DetectorError
 from detector.infer import CropPoseConfig
 from detector.pose import PoseConfig
 from detector.train import RESUME_FREE_KEYS, check_resumable, make_config, train
-from detector.train_pose import POSE_RESUME_FREE_KEYS, load_pose_config, train_pose
+from detector.train_pose import POSE_RESUME_FREE_KEYS, load_pose_config, saved_settings, train_pose
 
 #: The defaults of each section (``detector/presets/two-stage.yaml``): stage 1's overrides of the cpu training
 #: preset (centre votes only), stage 2's of PoseTrainConfig, and the pose and inference settings stored in the model
@@ -99,7 +99,7 @@ def train_two_stage(cfg: TwoStageConfig, train_path: str | Path, out_dir: str | 
         if saved1 is not None:
             check_resumable(saved1, s1, d1 / "last.pt", RESUME_FREE_KEYS)
         if saved2 is not None:
-            check_resumable(saved2, s2, d2 / "last.pt", POSE_RESUME_FREE_KEYS)
+            check_resumable(saved_settings(saved2), s2, d2 / "last.pt", POSE_RESUME_FREE_KEYS)
     out_dir.mkdir(parents=True, exist_ok=True)
     (out_dir / "two_stage.yaml").write_text(yaml.safe_dump(config_to_dict(cfg), sort_keys=False))
     if done1 is None or done1 < s1.steps:

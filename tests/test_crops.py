@@ -176,16 +176,11 @@ def test_crop_centre_jitter_scales_with_the_diameter_and_is_clipped():
         assert np.allclose(off.std(0), 0.1 * dia, rtol=0.08)  # a larger object gets a larger centre error
         assert np.abs(off).max() <= 0.25 * dia + 1e-12
         assert np.abs(off).max() > 0.2 * dia  # the clip is reached, not far beyond the tail
-    # model files written when the jitter was in metres still load: those keys shaped training only
-    old = {**CropConfig().to_dict(), "jitter": 0.012, "jitter_clip": 0.03}
-    del old["centre_jitter"], old["centre_jitter_clip"]
-    assert CropConfig.from_dict(old) == CropConfig(**{k: v for k, v in old.items() if "jitter" not in k})
 
 
-@pytest.mark.parametrize("before", [True, False])
-def test_edge_convolution_equals_its_definition_per_point(before):
+def test_edge_convolution_equals_its_definition_per_point():
     torch.manual_seed(0)
-    conv = EdgeConv(5, 7, norm_before_max=before)
+    conv = EdgeConv(5, 7)
     x, idx = torch.randn(2, 9, 5), torch.randint(0, 9, (2, 9, 4))
     out = conv(x, idx)
     with torch.no_grad():  # inference takes the running-maximum path: the same values
@@ -194,12 +189,15 @@ def test_edge_convolution_equals_its_definition_per_point(before):
     for bi in range(2):
         for i in range(9):
             edges = torch.stack([W1 @ x[bi, i] + b1 + W2 @ (x[bi, j] - x[bi, i]) for j in idx[bi, i]])  # (k, 7)
-            ref = torch.relu(conv.norm(edges)).max(0).values if before else torch.relu(conv.norm(edges.max(0).values))
-            assert torch.allclose(out[bi, i], ref, atol=1e-5)
-    # a model file without the option normalised before the max
-    legacy = CropNetConfig().to_dict()
-    del legacy["norm_before_max"]
-    assert CropNetConfig.from_dict(legacy).norm_before_max and not CropNetConfig().norm_before_max
+            assert torch.allclose(out[bi, i], torch.relu(conv.norm(edges.max(0).values)), atol=1e-5)
+    # model files store the option that chose this design (checkpoints/lm8.pt); the other design is refused
+    assert CropNetConfig.from_dict({**CropNetConfig().to_dict(), "norm_before_max": False}) == CropNetConfig()
+    with pytest.raises(DetectorError, match="norm_before_max"):
+        CropNetConfig.from_dict({**CropNetConfig().to_dict(), "norm_before_max": True})
+    # a stage-2 run started when the option existed resumes: its saved settings name this network
+    from detector.train_pose import saved_settings
+
+    assert saved_settings({"net": {"k": 12, "norm_before_max": False}, "steps": 3}) == {"net": {"k": 12}, "steps": 3}
 
 
 def test_roll_about_the_ray_keeps_the_centre_and_model_coordinates():
