@@ -520,6 +520,25 @@ def load_scene_camera(path: str | os.PathLike) -> dict[int, FrameCamera]:
     return parse_scene_camera(_scene_json(Path(path), "scene_camera.json"), str(path))
 
 
+def depth_image_camera(path: str | os.PathLike) -> FrameCamera | None:
+    """The camera of a depth image inside a BOP scene (``SCENE/depth/IMID.png``): its entry in the scene's
+    ``scene_camera.json``; None when the path is not laid out so, the scene has no such file or it has no entry for
+    the image."""
+    path = Path(path)
+    scene_cam = path.parent.parent / "scene_camera.json"
+    if path.parent.name != "depth" or not path.stem.isdigit() or not scene_cam.is_file():
+        return None
+    return load_scene_camera(scene_cam).get(int(path.stem))
+
+
+def camera_file_near(path: str | os.PathLike) -> Path | None:
+    """The ``camera.json`` that holds an image's intrinsics: beside the image, one folder up (a recording), or at the
+    root of the BOP dataset whose scene holds it (``DATASET/SPLIT/SCENE/depth/IMID.png``); None when there is none."""
+    p = Path(path)
+    near = [p.parent, p.parent.parent] + ([p.parents[3]] if len(p.parents) > 3 else [])
+    return next((d / CAMERA_FILE for d in near if (d / CAMERA_FILE).is_file()), None)
+
+
 def load_scene(root: str | os.PathLike, split: str, scene_id: int) -> BopScene:
     """Read and check the JSON files of one scene."""
     d = scene_dir(root, split, scene_id)
