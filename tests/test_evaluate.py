@@ -6,11 +6,16 @@ import json
 
 import numpy as np
 import pytest
+import torch
+from test_data import TINY_MODEL
 from typer.testing import CliRunner
 
 from argen.cli.app import app as argen_app
 from argen.h5 import LabelFile
 from argen.label import LabelConfig, LabelRequest, run_label
+from detector import model
+from detector.checkpoint import save_checkpoint
+from detector.data import NORMALISATION, object_table_dict
 from detector.evaluate import evaluate
 from detector.infer import Predictions, oracle_predictor
 from detector.pose import PoseConfig
@@ -202,14 +207,6 @@ def test_predict_input_errors(tmp_path):
 @pytest.fixture(scope="module")
 def random_checkpoint(label_file, tmp_path_factory):
     """A randomly initialised tiny PoseNet saved through detector.checkpoint (detects nothing useful)."""
-    torch = pytest.importorskip("torch")
-    pytest.importorskip("detector.ops")
-    model = pytest.importorskip("detector.model")
-    from test_data import TINY_MODEL
-
-    from detector.checkpoint import save_checkpoint
-    from detector.data import NORMALISATION, object_table_dict
-
     torch.set_num_threads(1)
     torch.manual_seed(0)
     cfg = model.ModelConfig.from_dict({**model.preset("cpu").to_dict(), **TINY_MODEL})
@@ -232,22 +229,34 @@ def test_cli_eval_and_predict_with_a_random_network(random_checkpoint, dataset, 
     assert r.exit_code == 0, r.output
     js = json.loads((tmp_path / "rep" / "report.json").read_text())
     assert js["num_frames"] == 1 and js["timing_ms"]["network"] > 0 and js["timing_ms"]["sampling"] > 0
-    assert 0 <= js["mean"]["noicp"]["0.10"] <= 1
+    # the mean is the objects' shares of instances within 10 % of their diameter
+    per_object = {}
+    for row in js["instances"]:
+        per_object.setdefault(row["obj_id"], []).append(row["noicp"] is not None and row["noicp"] < 0.1 * row["diameter"])
+    assert per_object and js["mean"]["noicp"]["0.10"] == pytest.approx(np.mean([np.mean(v) for v in per_object.values()]))
     csv_path = next((tmp_path / "rep").glob("*_*-*.csv"))
     head = csv_path.read_text().splitlines()[0]
     assert head == "scene_id,im_id,obj_id,score,R,t,time"
-    for row in read_bop_csv(csv_path):  # any detections are proper rotations
-        assert np.allclose(row["R"] @ row["R"].T, np.eye(3), atol=1e-5) and row["time"] > 0
+    rows = read_bop_csv(csv_path)
+    assert len(rows) == js["f1"]["noicp"]["num_det"] > 0  # a row per detection
+    for row in rows:
+        assert np.allclose(row["R"] @ row["R"].T, np.eye(3), atol=1e-5) and np.linalg.det(row["R"]) > 0
+        assert row["time"] > 0
     assert (tmp_path / "rep" / "curve.png").is_file() and (tmp_path / "rep" / "report.md").is_file()
 
     from argen import bop
 
     im_id = bop.load_scene(ds, "train_pbr", 0).im_ids[0]
     r = runner.invoke(app, ["predict", str(random_checkpoint), str(ds / "train_pbr" / "000000" / str(im_id)),
-                            "--out", str(tmp_path / "pred")])
+                            "--out", str(tmp_path / "pred"), "--tau", "0"])
     assert r.exit_code == 0, r.output
     out = json.loads((tmp_path / "pred" / "poses.json").read_text())
-    assert isinstance(out["detections"], list) and out["timing_ms"]["network"] > 0
+    assert out["timing_ms"]["network"] > 0 and out["detections"]
+    assert f"{len(out['detections'])} detections" in r.stdout
+    for d in out["detections"]:  # every pose a rotation, T_cam_model the same pose
+        R, T = np.array(d["R"]), np.array(d["T_cam_model"])
+        assert np.allclose(R @ R.T, np.eye(3), atol=1e-9) and np.linalg.det(R) == pytest.approx(1.0)
+        assert np.array_equal(T[:3, :3], R) and np.array_equal(T[:3, 3], d["t"]) and T[3].tolist() == [0, 0, 0, 1]
     assert (tmp_path / "pred" / "poses.png").read_bytes()[:4] == b"\x89PNG"
 
     r = runner.invoke(app, ["predict", str(random_checkpoint), str(tmp_path / "missing.ply")])
