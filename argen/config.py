@@ -185,7 +185,6 @@ class TemplateConfig:
     """A whole capture template (``templates/NAME.yaml``)."""
 
     name: str = "linemod"
-    description: str = ""
     sensor: str = "kinect_v1"  # argen/sensors/NAME.yaml: intrinsics, resolution, range and noise
     seed: int = 0
     objects: list[str] = field(default_factory=list)  # names or ids; empty = all available

@@ -23,7 +23,8 @@ def fail(msg: str) -> None:
 
 
 def user_errors(fn):
-    """Turn ArgenError (and a few OS-level user errors) into one line on stderr and exit 2."""
+    """Turn ArgenError, and an OSError on a path the user gave or that lies under it (a folder that cannot be made,
+    a file that is a folder, no permission), into one line on stderr and exit 2."""
 
     @functools.wraps(fn)
     def wrapper(*args, **kwargs):
@@ -31,6 +32,10 @@ def user_errors(fn):
             return fn(*args, **kwargs)
         except ArgenError as exc:
             fail(str(exc))
+        except OSError as exc:
+            if exc.filename is None or not exc.strerror:
+                raise
+            fail(f"cannot use {exc.filename}: {exc.strerror[0].lower()}{exc.strerror[1:]}")
         except KeyboardInterrupt:
             typer.echo("argen: interrupted; run the same command again to resume", err=True)
             raise typer.Exit(130)
