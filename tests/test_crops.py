@@ -30,10 +30,11 @@ from detector.train_pose import load_pose_config
 
 @pytest.fixture(scope="module")
 def labels(tmp_path_factory):
-    """A 4-frame noisy capture-sim dataset of the built-in objects, labelled."""
+    """A 4-frame noisy capture-sim dataset of the built-in objects, labelled; no distractors on the board and the
+    objects apart, so that each shows enough points for the crop tests."""
     d = tmp_path_factory.mktemp("crops")
     r = CliRunner().invoke(argen_app, ["capture-sim", "--frames", "4", "--out", str(d / "ds"), "--seed", "8",
-                                       "--quiet"])
+                                       "--set", "clutter.on_board=[0,0]", "--set", "placement.beside=0", "--quiet"])
     assert r.exit_code == 0, r.output
     run_label(LabelRequest(dataset=d / "ds", split="train_pbr", out=d / "l.h5", progress=False,
                            cfg=LabelConfig(max_points=20000)))

@@ -24,10 +24,12 @@ from detector.report import read_bop_csv
 
 @pytest.fixture(scope="session")
 def dataset(tmp_path_factory):
-    """A 3-frame noise-free capture-sim dataset of the built-in objects and its label file (tiny)."""
+    """A 3-frame noise-free capture-sim dataset of the built-in objects and its label file (tiny); no distractors
+    on the board and the objects apart, so that an offset never lands a detection on another instance."""
     d = tmp_path_factory.mktemp("eval")
     r = CliRunner().invoke(argen_app, ["capture-sim", "--frames", "3", "--noise", "none", "--out", str(d / "ds"),
-                                       "--seed", "5", "--quiet"])
+                                       "--seed", "5", "--set", "clutter.on_board=[0,0]", "--set", "placement.beside=0",
+                                       "--quiet"])
     assert r.exit_code == 0, r.output
     out = d / "test.h5"
     run_label(LabelRequest(dataset=d / "ds", split="train_pbr", out=out, progress=False,
@@ -67,7 +69,8 @@ def test_oracle_gives_full_add_accuracy(label_file, tmp_path):
 
 
 def test_oracle_with_wrong_offsets_is_scored_as_wrong(label_file, tmp_path):
-    """Shift every predicted control point by 3 cm: ADD then fails at 10 % for the smaller objects."""
+    """Shift every predicted control point by 3 cm: the ADD error is then 3 cm (at most that for ADD-S: a shifted
+    symmetric object partly maps onto itself), so ADD fails at 10 % for the smaller objects."""
     base = oracle_predictor()
 
     def shifted(frame):
@@ -75,9 +78,11 @@ def test_oracle_with_wrong_offsets_is_scored_as_wrong(label_file, tmp_path):
         return Predictions(p.xyz, p.class_probs, p.class_ids, p.control_points + [0.03, 0, 0], p.confidence)
 
     s = evaluate(shifted, label_file, tmp_path, icp=False)
-    errs = np.array([r["noicp"] for r in s["instances"]])
-    assert np.allclose(errs[np.isfinite(errs)], 0.03, atol=1e-4)
-    small = [o for o in s["objects"] if o["diameter"] < 0.3]
+    sym = {o["obj_id"] for o in s["objects"] if o["symmetric"]}
+    errs = np.array([r["noicp"] for r in s["instances"] if r["obj_id"] not in sym])
+    assert len(errs) >= 3 and np.allclose(errs[np.isfinite(errs)], 0.03, atol=1e-4)
+    assert all(r["noicp"] <= 0.03 + 1e-4 for r in s["instances"] if r["obj_id"] in sym and r["noicp"] is not None)
+    small = [o for o in s["objects"] if o["diameter"] < 0.3 and not o["symmetric"]]
     assert all(o["add"]["noicp"]["0.10"] == 0.0 for o in small)
 
 
@@ -246,11 +251,13 @@ def test_cli_eval_and_predict_with_a_random_network(random_checkpoint, dataset, 
 
     from argen import bop
 
-    im_id = bop.load_scene(ds, "train_pbr", 0).im_ids[0]
-    r = runner.invoke(app, ["predict", str(random_checkpoint), str(ds / "train_pbr" / "000000" / str(im_id)),
-                            "--out", str(tmp_path / "pred"), "--tau", "0"])
-    assert r.exit_code == 0, r.output
-    out = json.loads((tmp_path / "pred" / "poses.json").read_text())
+    for im_id in bop.load_scene(ds, "train_pbr", 0).im_ids:  # a random network may find nothing in a frame
+        r = runner.invoke(app, ["predict", str(random_checkpoint), str(ds / "train_pbr" / "000000" / str(im_id)),
+                                "--out", str(tmp_path / "pred"), "--tau", "0", "--min-score", "0"])
+        assert r.exit_code == 0, r.output
+        out = json.loads((tmp_path / "pred" / "poses.json").read_text())
+        if out["detections"]:
+            break
     assert out["timing_ms"]["network"] > 0 and out["detections"]
     assert f"{len(out['detections'])} detections" in r.stdout
     for d in out["detections"]:  # every pose a rotation, T_cam_model the same pose

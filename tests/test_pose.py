@@ -427,6 +427,6 @@ def test_icp_on_a_spread_subset_of_many_points_still_fixes_the_pose():
     assert r.score == surface_support(noisy, tree, normals, r.R, r.t, dist)
     spread = noisy[np.linspace(0, len(noisy) - 1, 150).round().astype(np.int64)]  # ICP and its test ran on these
     R1, t1, ok, _ = refine_pose(spread, 1, d.R, d.t, objs, cfg)
-    assert ok and np.array_equal(R1, r.R) and np.array_equal(t1, r.t)
+    assert ok and np.allclose(R1, r.R, atol=1e-9) and np.allclose(t1, r.t, atol=1e-12)
     (full,) = refine([d], noisy[:3], objs, PoseConfig(icp=True), cloud=noisy)
     assert add_error(model, R, t, full.R, full.t) < 0.003
