@@ -72,7 +72,7 @@ def surface_texture(colour, grain: str, seed: int, px: int = 256) -> np.ndarray:
 def _slab(name: str, colours: list, grain: str, rng: np.random.Generator) -> tuple[tuple, trimesh.Trimesh]:
     """One of a fixed set of unit slabs (1 x 1 x 1 m, top at z = 0, textured top): (render key, mesh)."""
     i = int(rng.integers(len(colours) * TEXTURE_VARIANTS))
-    key = ("surface", name, i)
+    key = ("surface", name, grain, i)  # the key names everything the texture depends on (render cache)
     if key not in _cache:
         tex = surface_texture(colours[i // TEXTURE_VARIANTS], grain, seed=1000 * len(name) + i)
         _cache[key] = textured_plane(1.0, tex, thickness=1.0)
