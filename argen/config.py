@@ -66,6 +66,7 @@ class PlacementConfig:
     min_gap: float = 0.005  # metres between footprints
     beside: float = 0.5  # probability that an instance stands right next to one already placed (min_gap + 0-2 cm)
     stable_poses: int = 4  # most likely resting poses of each object to choose from
+    uniform_poses: float = 0.0  # share of draws uniform over those poses (people stand a box on its end; physics rarely)
 
 
 @dataclass
@@ -290,6 +291,7 @@ def validate(obj: Any, where: str = "config") -> None:
         _check(obj.min_gap >= 0, where, "placement min_gap must be non-negative")
         _check(0 <= obj.beside <= 1, where, "placement beside must lie in [0, 1]")
         _check(obj.stable_poses >= 1, where, "placement stable_poses must be at least 1")
+        _check(0 <= obj.uniform_poses <= 1, where, "placement uniform_poses must lie in [0, 1]")
     elif isinstance(obj, ClutterConfig):
         for name in ("count", "on_board", "papers", "shelf_items"):
             lo, hi = getattr(obj, name)

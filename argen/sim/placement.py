@@ -89,6 +89,14 @@ def footprint_of(obj: ObjectModel, T_world_obj: np.ndarray) -> np.ndarray:
     return convex_hull_2d(v[:, :2])
 
 
+def pose_weights(probs: np.ndarray, uniform: float) -> np.ndarray:
+    """(P,) probabilities of drawing each resting pose: the physical ones ``probs`` (P,) mixed with a uniform
+    share ``uniform`` in [0, 1] (0: physics only; 1: every pose alike)."""
+    probs = np.asarray(probs, np.float64)
+    w = (1.0 - uniform) * probs / probs.sum() + uniform / len(probs)
+    return w / w.sum()
+
+
 def choose_instances(objects: list[ObjectModel], cfg: PlacementConfig, rng: np.random.Generator) -> list[ObjectModel]:
     """Draw which objects (and how many copies of each) go into one frame."""
     lo, hi = cfg.objects_per_frame
@@ -118,6 +126,7 @@ def place_instances(
     taken = list(obstacles or [])
     for obj in instances:
         _, probs = obj.stable_poses(cfg.stable_poses)
+        probs = pose_weights(probs, cfg.uniform_poses)
         ok = False
         for _ in range(cfg.max_tries):
             pose_idx = int(rng.choice(len(probs), p=probs))
