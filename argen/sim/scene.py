@@ -108,8 +108,8 @@ def _within(outline: np.ndarray):
 def build_room(cfg: TemplateConfig, board: Board, rng: np.random.Generator) -> tuple[list[RenderItem], dict]:
     """The desk under the board (random extent: its edges may be in view), the floor below and walls.
 
-    Returns the render items and {"desk": (4,2) outline metres, "desk_z", "walls": [(edge index, distance)],
-    "edges": (x0, x1, y0, y1)}.
+    Returns the render items and {"desk": (4,2) outline metres, "desk_z", "walls": [((2,) outward unit normal,
+    distance of the wall's face from the board centre, metres)]}.
     """
     sc = cfg.scene
     half = board.side / 2
@@ -133,8 +133,8 @@ def build_room(cfg: TemplateConfig, board: Board, rng: np.random.Generator) -> t
         key, mesh = _slab("wall", WALL_COLOURS, "paint", rng)
         front = np.r_[n * d, top - height + 1.25]  # the wall's face, 2.5 m high from the floor, 5 cm thick
         items.append(RenderItem(key, mesh, box_pose(front, (4.0, 2.5, 0.05), R)))
-        walls.append((int(e), float(d)))
-    return items, {"desk": _rect(x0, x1, y0, y1), "desk_z": top, "walls": walls, "edges": (x0, x1, y0, y1)}
+        walls.append((n, float(d)))
+    return items, {"desk": _rect(x0, x1, y0, y1), "desk_z": top, "walls": walls}
 
 
 def build_scene(cfg: TemplateConfig, objects: list[ObjectModel], board: Board, rng: np.random.Generator) -> Scene:
@@ -143,7 +143,8 @@ def build_scene(cfg: TemplateConfig, objects: list[ObjectModel], board: Board, r
     cl = cfg.clutter
     items, room = build_room(cfg, board, rng)
     items.append(RenderItem(key=("board",), mesh=board_mesh(board), T_world_obj=np.eye(4), seg_id=0))
-    surfaces = [("board", 0.0, _rect(-half, half, -half, half)), ("desk", room["desk_z"], room["desk"])]
+    board_square = _rect(-half, half, -half, half)
+    surfaces = [("board", 0.0, board_square), ("desk", room["desk_z"], room["desk"])]
     if rng.random() < cl.board_cover:  # a magazine, cloth or mat over the free area; the markers stay visible
         f = board.free_half_extent + board.cfg.marker_gap / 2
         key, mesh = _paper(rng) if rng.random() < 0.5 else _slab("cover", DESK_COLOURS + FLOOR_COLOURS, "carpet", rng)
@@ -169,7 +170,6 @@ def build_scene(cfg: TemplateConfig, objects: list[ObjectModel], board: Board, r
                                             avoid=avoid):
         add(lib[i][0], ("distractor", i), lib[i][1], T, "board")
     # the desk around the board: papers first (flat), a monitor, then the small things
-    board_square = _rect(-half, half, -half, half)
     desk_in = _within(room["desk"])
 
     def on_desk(fp: np.ndarray) -> bool:
@@ -187,8 +187,7 @@ def build_scene(cfg: TemplateConfig, objects: list[ObjectModel], board: Board, r
         T = box_pose((0, 0, dz + e[2]), e, distractors_mod.pose(1.0, rng.uniform(0, 2 * np.pi), (0, 0, 0))[:3, :3])
         for _ in range(20):
             T[:2, 3] = ring(rng)
-            fp = convex_hull_2d(np.array([T[:2, :2] @ np.array([sx, sy]) * 0.5 + T[:2, 3]
-                                          for sx in (-1, 1) for sy in (-1, 1)]))
+            fp = distractors_mod.hull_footprint(mesh, T)
             if on_desk(fp) and not any(separation(fp, o) <= 0 for o in taken):
                 taken.append(fp)
                 add("papers", key, mesh, T, "desk")
@@ -210,8 +209,7 @@ def build_scene(cfg: TemplateConfig, objects: list[ObjectModel], board: Board, r
         add(lib[i][0], ("distractor", i), lib[i][1], T, "desk")
     # a shelf on one wall, above the desk, with things on it
     if room["walls"] and rng.random() < cl.shelf:
-        e, d = room["walls"][int(rng.integers(len(room["walls"])))]
-        n = np.array([(1, 0), (-1, 0), (0, 1), (0, -1)][e], float)
+        n, d = room["walls"][int(rng.integers(len(room["walls"])))]
         depth, width = rng.uniform(0.2, 0.3), rng.uniform(0.6, 1.2)
         z = dz + rng.uniform(0.45, 0.7)
         t = np.array([-n[1], n[0]])
