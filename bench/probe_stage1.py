@@ -1,6 +1,8 @@
 """Stage-1 check: how far a two-stage model's stage-1 centres are from the true box centres (the crop jitter
-stage 2 must forgive), and how many instances get a centre at all. Usage: python bench/probe_stage1.py CKPT LABELS
-[--frames N] (CKPT: a stage-1 run's last.pt or a two-stage model.pt)."""
+stage 2 must forgive), how many instances get a centre at all, and per object how many of its sampled points
+stage 1 labels right (and how many background points it takes for an object). Usage:
+python bench/probe_stage1.py CKPT LABELS [--frames N] [--min-visib V] (CKPT: a stage-1 run's last.pt or a
+two-stage model.pt)."""
 
 from __future__ import annotations
 
@@ -8,6 +10,7 @@ import argparse
 
 import numpy as np
 import torch
+from scipy.spatial import cKDTree
 
 from argen.h5 import LabelFile
 from detector.checkpoint import Checkpoint, build_model, read_checkpoint
@@ -21,8 +24,9 @@ def main() -> None:
     ap.add_argument("labels")
     ap.add_argument("--frames", type=int, default=60)
     ap.add_argument("--tau", type=float, default=0.3)
+    ap.add_argument("--min-visib", type=float, default=0.1)
     a = ap.parse_args()
-    torch.set_num_threads(2)
+    torch.set_num_threads(1)
     payload = read_checkpoint(a.ckpt)
     payload = payload.get("detect", payload)
     model, cfg = build_model(payload, a.ckpt, "cpu")
@@ -31,26 +35,45 @@ def main() -> None:
     pred = network_predictor(ck)
     objs = ObjectInfo.from_table(payload["objects"])
     errs, found, total = [], 0, 0
+    points = {}  # obj_id: [instances, sampled points, labelled right, centre found]
+    false_fg = sampled = 0
     with LabelFile(a.labels) as lf:
         for i in range(min(a.frames, lf.num_frames)):
             f = lf.frame(i)
             p = pred(f)
             dets = detect(p.xyz, p.obj_ids, p.confidence, p.control_points, objs,
                           PoseConfig(tau=a.tau, centre_votes=True))
+            rows = cKDTree(np.asarray(f.features[:, :3], np.float64)).query(p.xyz)[1]  # the sampled points' rows
+            sem, ins, pred_ids = np.asarray(f.semantic)[rows], np.asarray(f.instance)[rows], p.obj_ids
+            false_fg += int(np.sum((sem == 0) & (pred_ids > 0)))
+            sampled += len(rows)
             inst = f.instances
             for g in range(len(inst)):
-                if inst.visib_fract[g] < 0.1:
+                if inst.visib_fract[g] < a.min_visib:
                     continue
                 total += 1
+                oid = int(inst.obj_id[g])
                 c = inst.control_points[g][8]
-                d = [np.linalg.norm(x.control_points[8] - c) for x in dets if x.obj_id == inst.obj_id[g]]
-                if d and min(d) < 0.1:
+                d = [np.linalg.norm(x.control_points[8] - c) for x in dets if x.obj_id == oid]
+                hit = bool(d and min(d) < 0.1)
+                if hit:
                     found += 1
                     errs.append(min(d))
+                mine = ins == g
+                row = points.setdefault(oid, [0, 0, 0, 0])
+                row[0] += 1
+                row[1] += int(mine.sum())
+                row[2] += int(np.sum(mine & (pred_ids == oid)))
+                row[3] += int(hit)
     e = np.array(errs) * 100
     print(f"{total} instances, {found} with a centre within 10 cm ({100 * found / max(total, 1):.1f} %); "
           f"centre error cm: median {np.median(e):.2f}, p90 {np.percentile(e, 90):.2f}, "
           f"per-axis RMS {np.sqrt(np.mean(e ** 2) / 3):.2f}")
+    print(f"background points taken for an object: {false_fg} of {sampled} sampled")
+    print("| object | instances | sampled points | labelled right | instances with a centre within 10 cm |")
+    print("|---|---:|---:|---:|---:|")
+    for oid, (n, pts, right, hit) in sorted(points.items()):
+        print(f"| {oid} | {n} | {pts} | {right} ({100 * right / max(pts, 1):.0f} %) | {hit} |")
 
 
 if __name__ == "__main__":

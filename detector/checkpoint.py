@@ -36,7 +36,8 @@ class Checkpoint:
     objects: the label file's object table as plain lists (ids, names, diameters metres, symmetric,
     control_points (M, 9, 3) metres, model_points (M, P, 3) metres, sym_transforms per object (S, 4, 4));
     num_points: points sampled per frame; step: training steps done; extra: train config, metrics;
-    normalisation: the input colour normalisation (see ``detector.data.NORMALISATION``);
+    normalisation: the network input's colour normalisation (``detector.data.input_normalisation``: with "colour":
+    "none" the network has no colour input);
     pose_net: a two-stage model's crop network (stage 2) or None; pose: its part of the file (configs, classes)
     without the weights; pose_config: inference settings stored with the model ({} for none).
     """

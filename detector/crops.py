@@ -32,8 +32,8 @@ class CropConfig:
     degrees (a camera's roll about its view direction varies little in a capture: capture-sim draws it with a 5
     degree spread, a hand-held sensor also stays near upright, and the support plane below an object is a cue
     the network should keep); colour: the colour augmentation, "light" (a gain of 0.8-1.2 and noise on the
-    normalised colours) or "camera" (:func:`camera_colour`: exposure, white balance, gamma, sometimes grey or no
-    colour at all, as real cameras differ from the renderer); neighbour: augmentation puts, with this chance, a
+    normalised colours), "camera" (:func:`camera_colour`: exposure, white balance, gamma, sometimes grey or no
+    colour at all, as real cameras differ from the renderer) or "none" (the network gets no colour); neighbour: augmentation puts, with this chance, a
     copy of the instance's own points beside it as background (:func:`add_neighbour`), at a lateral distance of
     ``neighbour_offset`` (min, max) diameters between the centres: scenes such as LC-HF hold several instances of
     one object side by side, and a crop around one of them must not take its neighbour for it.
@@ -78,8 +78,11 @@ def sample_crop(rows: np.ndarray, num_points: int, rng: np.random.Generator) -> 
 
 
 def normalised_colour(rgb: np.ndarray, normalisation: dict) -> np.ndarray:
-    """Network colour input: ``(rgb - rgb_mean) / rgb_std``. rgb: (n,3) in [0, 1]; normalisation: {"rgb_mean",
-    "rgb_std"} (``detector.data.NORMALISATION``). Returns (n,3) float32."""
+    """Network colour input: ``(rgb - rgb_mean) / rgb_std``, or zeros for a network without colour input
+    (``normalisation["colour"] == "none"``). rgb: (n,3) in [0, 1]; normalisation: {"rgb_mean", "rgb_std"[, "colour"]}
+    (``detector.data.input_normalisation``). Returns (n,3) float32."""
+    if normalisation.get("colour") == "none":
+        return np.zeros(np.shape(rgb), np.float32)
     return ((rgb - normalisation["rgb_mean"]) / normalisation["rgb_std"]).astype(np.float32)
 
 
@@ -175,8 +178,10 @@ def roll_about_ray(points: np.ndarray, centre: np.ndarray, angle: float) -> tupl
     return (np.asarray(points, np.float64) - centre) @ Q.T + centre, Q
 
 
-#: The colour augmentations of both stages' training: "light" (a small gain and noise) or "camera" (camera_colour).
-COLOUR_MODES = ("light", "camera")
+#: The colour input of both stages' training: "light" (colour with a small gain and noise), "camera" (colour changed as
+#: another camera would give it: camera_colour) or "none" (no colour: the network sees geometry only, in training and
+#: at inference, whatever camera gives the frame).
+COLOUR_MODES = ("light", "camera", "none")
 
 #: camera_colour's ranges: exposure gain, per-channel white-balance gain, gamma, and the chances of a grey crop and
 #: of one without colour.
@@ -265,7 +270,7 @@ def training_crop(frame, g: int, diameter: float, sym_transforms: np.ndarray, cf
         if cfg.colour == "camera":
             rgb = camera_colour(np.asarray(features)[rows, 3:6], rng)
             feats[:, 3:6] = normalised_colour(rgb, normalisation)
-        else:
+        elif cfg.colour == "light":
             feats[:, 3:6] = feats[:, 3:6] * np.float32(rng.uniform(0.8, 1.2)) + rng.normal(0, 0.1, 3).astype(np.float32)
     return {"features": feats, "fg": fg.astype(np.float32),
             "coords": symmetry_targets(coords, sym_transforms, diameter), "centre": centre}

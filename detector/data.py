@@ -27,6 +27,13 @@ from detector.ops import precompute_indices
 #: Colour normalisation of the network input; the label file stores colour in [0, 1].
 NORMALISATION: dict[str, float] = {"rgb_mean": 0.5, "rgb_std": 0.25}
 
+
+def input_normalisation(colour: str) -> dict:
+    """The input normalisation a stage trained with colour mode ``colour`` (``detector.crops.COLOUR_MODES``) keeps in
+    its checkpoint: :data:`NORMALISATION`, plus ``"colour": "none"`` for a network without colour input (its colour
+    channels are zero in training and at inference)."""
+    return {**NORMALISATION, "colour": "none"} if colour == "none" else dict(NORMALISATION)
+
 #: Augmentation strengths (metres, radians, colour units in [0, 1]).
 JITTER_SIGMA = 0.002
 JITTER_CLIP = 0.005
@@ -84,7 +91,7 @@ def augment(features: np.ndarray, control_points: np.ndarray, rng: np.random.Gen
     """Light augmentation: a small roll about the camera axis (points, normals and labels alike), xyz jitter,
     and a colour change: ``colour`` "light" is a brightness gain of +-15 % and colour noise, "camera" the whole
     frame's colours as another camera would give them (:func:`detector.crops.camera_colour`: exposure, white
-    balance, gamma, sometimes grey or none).
+    balance, gamma, sometimes grey or none), "none" leaves colour as it is (the network does not see it).
 
     features: (N, 9) float32, colour in [0, 1]; control_points: (N, 9, 3) float32 metres (zeros = background).
     Returns new arrays of the same shapes; background control points stay zero.
@@ -98,7 +105,7 @@ def augment(features: np.ndarray, control_points: np.ndarray, rng: np.random.Gen
     out[:, 0:3] += jitter.astype(np.float32)
     if colour == "camera":
         out[:, 3:6] = camera_colour(out[:, 3:6], rng)
-    else:
+    elif colour == "light":
         gain = rng.uniform(1.0 - BRIGHTNESS, 1.0 + BRIGHTNESS)
         out[:, 3:6] = np.clip(out[:, 3:6] * gain + rng.normal(0.0, COLOUR_SIGMA, (len(out), 3)), 0.0, 1.0)
     return out, cps
@@ -220,6 +227,7 @@ class PointDataset(FrameSource):
                  class_ids: Sequence[int] | None = None, precompute: bool = True, colour: str = "light"):
         self.model_cfg = model_cfg
         self.colour = colour
+        self.normalisation = input_normalisation(colour)
         self.specs = list(model_cfg.sampling_specs())
         self.num_points = int(num_points)
         self.precompute = bool(precompute)
@@ -239,7 +247,7 @@ class PointDataset(FrameSource):
         if self.augment:
             feats, cps = augment(feats, cps, rng, self.colour)
         item = sampling_indices(feats[:, :3], self.specs) if self.precompute else {}
-        item.update(features=torch.from_numpy(normalise_features(feats)), cls=torch.from_numpy(cls),
+        item.update(features=torch.from_numpy(normalise_features(feats, self.normalisation)), cls=torch.from_numpy(cls),
                     instance=torch.from_numpy(instance), control_points=torch.from_numpy(cps),
                     frame=torch.tensor(index, dtype=torch.int64))
         return item
@@ -395,7 +403,8 @@ class CropDataset(FrameSource):
             oid = int(inst.obj_id[g])
             if oid not in self.class_ids or inst.visib_fract[g] < cfg.min_visib or inst.num_points[g] < cfg.min_object_points:
                 continue
-            c = training_crop(frame, g, self.diameters[oid], self.sym[oid], cfg, rng, NORMALISATION, self.augment)
+            c = training_crop(frame, g, self.diameters[oid], self.sym[oid], cfg, rng,
+                                  input_normalisation(cfg.colour), self.augment)
             if c is not None:
                 crops.append((self.class_ids.index(oid), c))
         feats = np.zeros((len(crops), n, 9), np.float32)

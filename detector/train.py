@@ -38,7 +38,7 @@ from detector.checkpoint import read_checkpoint, save_checkpoint
 from detector.config import (NETWORK_PRESETS, config_from_dict, config_to_dict, load_preset, load_yaml,
                              set_dotted)
 from detector.crops import COLOUR_MODES
-from detector.data import NORMALISATION, PointDataset, StreamBatchSampler, collate
+from detector.data import PointDataset, StreamBatchSampler, collate
 from detector.distributed import DistContext
 from detector.errors import DetectorError
 from detector.loss import LossConfig, multitask_loss
@@ -76,7 +76,7 @@ class TrainConfig:
     seg_pretrain_steps: int = 0  # first steps train the segmentation head only (the paper's pre-training)
     loss: LossConfig = field(default_factory=LossConfig)
     augment: bool = True
-    colour: str = "light"  # colour augmentation: light (brightness +-15 %) | camera (detector.crops.camera_colour)
+    colour: str = "light"  # colour input: light (brightness +-15 %) | camera (detector.crops.camera_colour) | none
     class_ids: list[int] | None = None  # object ids to learn; None = all objects of the training file
     checkpoint_every: int = 200
     val_every: int = 200
@@ -156,7 +156,7 @@ def validate_config(cfg: TrainConfig) -> None:
         (cfg.num_workers >= 0 and cfg.val_frames >= 0, "num_workers and val_frames must be >= 0"),
         (cfg.device in ("auto", "cpu", "cuda"), "device must be auto, cpu or cuda"),
         (cfg.indices in ("auto", "loader", "model"), "indices must be auto, loader or model"),
-        (cfg.colour in COLOUR_MODES, "colour must be light or camera"),
+        (cfg.colour in COLOUR_MODES, "colour must be light, camera or none"),
     ]
     for ok, msg in checks:
         if not ok:
@@ -418,7 +418,7 @@ def _train(cfg: TrainConfig, train_path: str | Path, out_dir: str | Path, val_pa
     val_ds = None
     if val_path is not None and ctx.is_main:
         val_ds = PointDataset(val_path, model_cfg, cfg.num_points, augment=False, seed=cfg.seed,
-                              class_ids=ds.class_ids, precompute=use_indices)
+                              class_ids=ds.class_ids, precompute=use_indices, colour=cfg.colour)
     total = total_steps(cfg, len(ds))
     devices = [device] if device.type == "cuda" else []
     with torch.random.fork_rng(devices=devices):
@@ -450,7 +450,7 @@ def _train(cfg: TrainConfig, train_path: str | Path, out_dir: str | Path, val_pa
                            "data_position": step * cfg.batch_size, "config": config_to_dict(cfg),
                            "best_val_loss": best, "val": val, "total_steps": total}
             save_checkpoint(path, model=net, model_config=model_cfg, class_ids=ds.class_ids, objects=ds.objects,
-                            num_points=cfg.num_points, step=step, normalisation=NORMALISATION, extra=extra,
+                            num_points=cfg.num_points, step=step, normalisation=ds.normalisation, extra=extra,
                             train_state=train_state if path == last_path else None)
 
         sampler = StreamBatchSampler(len(ds), cfg.batch_size, cfg.seed, start=start, rank=ctx.rank,

@@ -21,7 +21,7 @@ from detector.checkpoint import FORMAT, atomic_torch_save, read_checkpoint
 from detector.config import config_from_dict, config_to_dict, set_dotted
 from detector.cropnet import CropNet, CropNetConfig, crop_loss
 from detector.crops import COLOUR_MODES, CropConfig
-from detector.data import NORMALISATION, CropDataset, StreamBatchSampler, collate_crops
+from detector.data import CropDataset, input_normalisation, StreamBatchSampler, collate_crops
 from detector.errors import DetectorError
 from detector.train import (
     MetricsLog,
@@ -76,7 +76,7 @@ def pose_payload(net: CropNet, cfg: PoseTrainConfig, class_ids: list[int], objec
     """The stage-2 part of a checkpoint: weights, configs, classes and the object table (plain values)."""
     return {"kind": POSE_KIND, "model_state": {k: v.detach().cpu() for k, v in net.state_dict().items()},
             "net_config": cfg.net.to_dict(), "crop_config": cfg.crop.to_dict(), "class_ids": list(class_ids),
-            "objects": objects, "normalisation": dict(NORMALISATION), "step": int(step),
+            "objects": objects, "normalisation": input_normalisation(cfg.crop.colour), "step": int(step),
             "train_config": config_to_dict(cfg), "train_state": train_state}
 
 
@@ -213,5 +213,5 @@ def load_pose_config(data: dict | None, overrides: dict | None = None) -> PoseTr
         raise DetectorError("stage-2 config: crop.neighbour must lie in [0, 1] and crop.neighbour_offset be "
                             "[min, max] with 0 < min <= max")
     if cfg.crop.colour not in COLOUR_MODES:
-        raise DetectorError(f"stage-2 config: crop.colour must be light or camera, got '{cfg.crop.colour}'")
+        raise DetectorError(f"stage-2 config: crop.colour must be light, camera or none, got '{cfg.crop.colour}'")
     return cfg

@@ -15,6 +15,7 @@ from argen.label import LabelConfig, LabelRequest, run_label
 from detector.cropnet import CropNet, CropNetConfig, EdgeConv, _NeighbourMax, crop_loss
 from detector.crops import (
     CropConfig,
+    crop_input,
     crop_region,
     jittered_centre,
     model_coordinates,
@@ -22,7 +23,7 @@ from detector.crops import (
     symmetry_targets,
     training_crop,
 )
-from detector.data import NORMALISATION, CropDataset, collate_crops
+from detector.data import NORMALISATION, CropDataset, collate_crops, input_normalisation
 from detector.errors import DetectorError
 from detector.pose import kabsch_batch, ransac_kabsch
 from detector.train_pose import load_pose_config
@@ -151,6 +152,27 @@ def test_camera_colour_augmentation_spans_real_camera_changes(labels):
                             augment=True)
     assert np.array_equal(plain["fg"], cam["fg"]) and np.array_equal(plain["coords"], cam["coords"])
     assert not np.allclose(plain["features"][:, 3:6], cam["features"][:, 3:6])
+
+
+def test_colour_none_crops_have_no_colour_and_the_same_targets(labels):
+    """Stage 2 without colour input: a training crop's colour channels are zero, its points, normals and targets are
+    the colour crop's (the crop draws no colour change), and the poser's crop input is zero there too."""
+    none = input_normalisation("none")
+    with LabelFile(labels) as lf:
+        tab, f = lf.objects, lf.frame(0)
+        g = int(np.argmax(f.instances.num_points))
+        m = tab.index(int(f.instances.obj_id[g]))
+        args = (f, g, float(tab.diameters[m]), tab.sym_transforms[m])
+        rgb = training_crop(*args, CropConfig(roll_deg=0.0, colour="none"), np.random.default_rng(3), NORMALISATION,
+                            augment=True)
+        bare = training_crop(*args, CropConfig(roll_deg=0.0, colour="none"), np.random.default_rng(3), none,
+                             augment=True)
+        rows = np.flatnonzero(np.asarray(f.instance) == g)[:50]
+        inp = crop_input(np.asarray(f.features, np.float32), rows, f.features[rows[0], :3], 0.05, none)
+    assert not np.any(bare["features"][:, 3:6]) and np.any(rgb["features"][:, 3:6])
+    assert np.array_equal(rgb["features"][:, [0, 1, 2, 6, 7, 8]], bare["features"][:, [0, 1, 2, 6, 7, 8]])
+    assert np.array_equal(rgb["fg"], bare["fg"]) and np.array_equal(rgb["coords"], bare["coords"])
+    assert not np.any(inp[:, 3:6]) and np.any(inp[:, :3])
 
 
 def test_symmetry_targets_are_the_coordinates_under_each_equivalent_pose():

@@ -169,7 +169,8 @@ import pickle  # noqa: E402
 import torch  # noqa: E402
 from pykdtree.kdtree import KDTree  # noqa: E402
 
-from detector.data import NORMALISATION, PointDataset, augment, class_index, collate, inference_batch, sample_rows  # noqa: E402
+from detector.data import (NORMALISATION, PointDataset, augment, class_index, collate, inference_batch,  # noqa: E402
+                           normalise_features, sample_rows)
 from detector.errors import DetectorError  # noqa: E402
 from detector.train import make_config  # noqa: E402
 
@@ -305,8 +306,26 @@ def test_camera_colour_augmentation_changes_a_whole_frame_like_another_camera(fr
             ratios.append(rgb.mean() / feats[:, 3:6].mean())
     assert 0 < none < 10 and 0 < grey < 15  # some depth-only and grey frames, most in colour
     assert min(ratios) < 0.75 and max(ratios) > 1.25  # spans exposures x0.7 and x1.3 (light stays within 15 %)
-    with pytest.raises(DetectorError, match="colour must be light or camera"):
+    with pytest.raises(DetectorError, match="colour must be light, camera or none"):
         make_config("cpu", {"colour": "sepia"})
+
+
+def test_colour_none_gives_the_network_geometry_only(h5_path, frames):
+    """colour "none": the items' colour channels are zero whatever the frame's colours, the geometry and labels are
+    those of the colour input, and the normalisation a checkpoint keeps says so."""
+    light = PointDataset(h5_path, small_model_config(), NUM_POINTS, augment=True, seed=4)
+    none = PointDataset(h5_path, small_model_config(), NUM_POINTS, augment=True, seed=4, colour="none")
+    assert none.normalisation == {**NORMALISATION, "colour": "none"} and "colour" not in light.normalisation
+    for key in (0, (1, 2)):
+        a, b = light[key], none[key]
+        assert not a["features"][:, 3:6].eq(0).all() and b["features"][:, 3:6].eq(0).all()
+        for k in ("cls", "instance", "control_points"):
+            assert torch.equal(a[k], b[k])
+        assert torch.allclose(a["features"][:, [0, 1, 2, 6, 7, 8]], b["features"][:, [0, 1, 2, 6, 7, 8]], atol=1e-6)
+    feats = frames[0][0]
+    assert np.array_equal(normalise_features(feats, none.normalisation)[:, 3:6], np.zeros((len(feats), 3)))
+    assert np.array_equal(normalise_features(feats, none.normalisation)[:, [0, 1, 2, 6, 7, 8]],
+                          feats[:, [0, 1, 2, 6, 7, 8]])
 
 
 def test_collate_stacks_items(h5_path):

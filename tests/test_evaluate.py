@@ -393,3 +393,29 @@ def test_bop_results_file_name_round_trip():
             bop_csv_name(*bad)
     with pytest.raises(ValueError):
         parse_bop_csv_name("results_bop_x.csv")
+
+
+def test_a_network_trained_without_colour_ignores_the_frame_colours(random_checkpoint, label_file, tmp_path):
+    """A checkpoint whose normalisation says colour "none" (``detector.data.input_normalisation``) predicts the same
+    whatever colours the frame has; the same weights with colour input do not (the control)."""
+    from types import SimpleNamespace
+
+    from detector.checkpoint import load_checkpoint
+    from detector.data import input_normalisation
+    from detector.infer import network_predictor
+
+    ck = load_checkpoint(random_checkpoint)
+    path = tmp_path / "none.pt"
+    save_checkpoint(path, model=ck.model, model_config=ck.model_config, class_ids=ck.class_ids, objects=ck.objects,
+                    num_points=ck.num_points, step=0, normalisation=input_normalisation("none"))
+    none = load_checkpoint(path)
+    with LabelFile(label_file) as lf:
+        feats = np.asarray(lf.frame(0).features, np.float32)
+    other = feats.copy()
+    other[:, 3:6] = np.random.default_rng(0).random((len(feats), 3))
+    for ckpt, same in ((none, True), (ck, False)):
+        a = network_predictor(ckpt)(SimpleNamespace(features=feats))
+        b = network_predictor(ckpt)(SimpleNamespace(features=other))
+        assert np.array_equal(a.xyz, b.xyz)
+        assert np.allclose(a.class_probs, b.class_probs, atol=1e-6) == same
+        assert np.allclose(a.control_points, b.control_points, atol=1e-6) == same
