@@ -97,7 +97,9 @@ def markdown(summary: dict) -> str:
     lines = [f"# Evaluation of `{summary['label_file']}`", "",
              f"{summary['num_frames']} frames, tau {summary['config']['tau']}, voting cell "
              f"{summary['config']['cell'] * 100:.1f} cm. Metric: ADD (ADD-S for symmetric objects, marked *); "
-             "a pose is correct under the given share of the object diameter.", "",
+             "a pose is correct under the given share of the object diameter. Per object and frame only the k "
+             "best-scoring poses count, k its instances, matched greedily by score (BOP19's rule: what a user reads).",
+             "",
              "## ADD accuracy at 10 % of the diameter (Table II layout)", "",
              "| object | instances | w/o refinement | with ICP |", "|---|---:|---:|---:|"]
     for o in objs:

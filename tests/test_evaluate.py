@@ -290,6 +290,44 @@ def test_oracle_multi_instance_f1_and_a_missed_instance(lchf_file, tmp_path):
     assert f["precision"] == 1.0 and f["recall"] == pytest.approx((n - 2) / n) and f["num_det"] == n - 2
 
 
+def test_a_higher_scoring_far_pose_is_the_answer_for_add_while_f1_counts_every_detection(label_file, tmp_path,
+                                                                                           monkeypatch):
+    """Per frame, the first visible instance gets its true pose (score 0.5) and, scored higher (0.9), a pose 0.8
+    diameters off: ADD takes the top-scoring pose, so that instance is wrong; F1 counts one TP and one FP."""
+    import detector.evaluate as ev
+    from detector.pose import Detection
+
+    with LabelFile(label_file) as lf:
+        dia = {int(o): float(d) for o, d in zip(lf.objects.ids, lf.objects.diameters)}
+
+    def fake_estimate(preds, objects, cfg, timings, cloud, poser, features):
+        inst = fake_estimate.frame.instances
+        valid = np.flatnonzero(inst.visib_fract >= 0.1)
+        dets = [Detection(int(inst.obj_id[g]), 0.5, inst.R[g].astype(float), inst.t[g].astype(float), 1,
+                          np.zeros((9, 3)), np.zeros(0, np.int64)) for g in valid]
+        g = valid[0]
+        far = inst.t[g] + [0.8 * dia[int(inst.obj_id[g])], 0, 0]
+        dets.append(Detection(int(inst.obj_id[g]), 0.9, inst.R[g].astype(float), far, 1, np.zeros((9, 3)),
+                              np.zeros(0, np.int64)))
+        return dets, None
+
+    def predictor(frame):
+        fake_estimate.frame = frame
+        return Predictions(np.zeros((0, 3)), np.zeros((0, 1)), [], np.zeros((0, 9, 3)), np.zeros(0), np.zeros(0, int))
+
+    monkeypatch.setattr(ev, "estimate", fake_estimate)
+    s = evaluate(predictor, label_file, tmp_path)
+    rows = s["instances"]
+    frames = sorted({r["frame"] for r in rows})
+    first = [next(r for r in rows if r["frame"] == f) for f in frames]
+    assert all(r["noicp"] == np.inf for r in first)  # the top-scoring pose is 0.8 diameters off
+    assert all(r["noicp"] < 1e-5 for r in rows if r not in first)
+    assert s["mean"]["noicp"]["0.30"] < 1.0
+    f = s["f1"]["noicp"]
+    assert (f["num_det"], f["num_gt"]) == (len(rows) + len(frames), len(rows))
+    assert f["recall"] == 1.0 and f["precision"] == pytest.approx(len(rows) / (len(rows) + len(frames)))
+
+
 def test_a_predictor_that_finds_nothing_scores_zero(label_file, tmp_path):
     base = oracle_predictor()
 
