@@ -11,7 +11,7 @@ from typer.testing import CliRunner
 from argen.cli.app import app as argen_app
 from argen.h5 import LabelFile
 from argen.label import LabelConfig, LabelRequest, run_label
-from detector.evaluate import evaluate
+from detector.evaluate import bop19_summary, evaluate
 from detector.infer import Predictions, oracle_predictor
 from detector.pose import PoseConfig
 from detector.report import read_bop_csv
@@ -59,6 +59,13 @@ def test_oracle_gives_full_add_accuracy(label_file, tmp_path):
     js = json.loads((tmp_path / "report.json").read_text())
     assert js["mean"]["noicp"]["0.10"] == 1.0 and js["mean"]["icp"] is None
     assert (tmp_path / "curve.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    # BOP19 on the labelled dataset: the ground truth scores 1 in every figure, in the toolkit's file too
+    b = json.loads((tmp_path / "scores_bop19.json").read_text())
+    assert set(b) == {"bop19_average_recall", "bop19_average_recall_vsd", "bop19_average_recall_mssd",
+                      "bop19_average_recall_mspd", "bop19_average_time_per_image"}
+    assert all(v == 1.0 for k, v in b.items() if k != "bop19_average_time_per_image")
+    assert s["bop19"]["num_targets"] == len(s["instances"]) and "## BOP19 Average Recall" in md
+    assert js["bop19"]["pixel_centres"] == "integer" and "errors" not in js["bop19"]
 
 
 def test_oracle_with_wrong_offsets_is_scored_as_wrong(label_file, tmp_path):
@@ -240,6 +247,10 @@ def test_cli_eval_and_predict_with_a_random_network(random_checkpoint, dataset, 
     for row in read_bop_csv(csv_path):  # any detections are proper rotations
         assert np.allclose(row["R"] @ row["R"].T, np.eye(3), atol=1e-5) and row["time"] > 0
     assert (tmp_path / "rep" / "curve.png").is_file() and (tmp_path / "rep" / "report.md").is_file()
+    assert "BOP19 AR: " in r.output and (tmp_path / "rep" / "scores_bop19.json").is_file()
+    r = runner.invoke(app, ["eval", str(random_checkpoint), str(h5), "--out", str(tmp_path / "rep"), "--quiet",
+                            "--bop-dataset", str(tmp_path / "nowhere")])
+    assert r.exit_code == 2 and "--bop-dataset" in r.output and len(r.output.strip().splitlines()) == 1
 
     from argen import bop
 
@@ -342,6 +353,20 @@ def test_a_predictor_that_finds_nothing_scores_zero(label_file, tmp_path):
     assert s["f1"]["icp"] == {"precision": 0.0, "recall": 0.0, "f1": 0.0, "num_det": 0, "num_gt": s["f1"]["icp"]["num_gt"]}
     assert (tmp_path / s["bop_csv"]).read_text() == "scene_id,im_id,obj_id,score,R,t,time\n"
     assert json.loads((tmp_path / "report.json").read_text())["instances"][0]["noicp"] is None  # inf -> null
+
+
+def test_bop19_is_skipped_with_its_reason_when_the_dataset_is_gone(label_file, tmp_path):
+    from detector.errors import DetectorError
+
+    (tmp_path / "scores_bop19.json").write_text("{}")  # an earlier run's: must not stay beside this report
+    s = evaluate(oracle_predictor(), label_file, tmp_path, frames=[0], bop_dataset=None, bop19=True)
+    assert "skipped" not in s["bop19"] and s["bop19"]["num_images"] == 1  # the evaluated frame's targets only
+    s = evaluate(oracle_predictor(), label_file, tmp_path, frames=[0], bop19=False)
+    assert "skipped" in s["bop19"] and not (tmp_path / "scores_bop19.json").exists()
+    assert "Not computed" in (tmp_path / "report.md").read_text()
+    with pytest.raises(DetectorError, match="--bop-dataset"):
+        evaluate(oracle_predictor(), label_file, tmp_path, bop_dataset=tmp_path / "nowhere")
+    assert "is not there" in bop19_summary([], set(), tmp_path / "moved away", "train_pbr")["skipped"]
 
 
 def test_bop_results_file_name_round_trip():
