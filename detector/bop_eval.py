@@ -54,6 +54,31 @@ def dataset_pixel_centres(argen_json: str | dict | None) -> str:
     return value if value in ("integer", "half") else "integer"
 
 
+#: Datasets the BOP toolkit (commit cea62d6) knows, whose table an argen capture can fit: {name: (object ids, image
+#: width and height)}. For a pbr split the toolkit takes scenes 0-49 of any dataset, and it needs every listed
+#: object's model in models_eval/.
+TOOLKIT_DATASETS = {"lm": (tuple(range(1, 16)), (640, 480)), "lmo": ((1, 5, 6, 8, 9, 10, 11, 12), (640, 480)),
+                    "ycbv": (tuple(range(1, 22)), (640, 480))}
+
+
+def toolkit_dataset_name(root: str | Path, split: str) -> str | None:
+    """The name under which the BOP toolkit runs unmodified on the pbr split ``split`` of the dataset at ``root``: the
+    entry of :data:`TOOLKIT_DATASETS` with the same object ids (models_eval/, else models/) and image size
+    (camera.json); None for another split, another set of objects, or a dataset that cannot be read."""
+    root = Path(root)
+    if bop.split_type(split) != "pbr" or not (root / bop.CAMERA_FILE).is_file():
+        return None
+    try:
+        models = ModelSet(root)
+        cam = bop.load_camera(root / bop.CAMERA_FILE)
+    except DetectorError:
+        return None
+    for name, (ids, size) in TOOLKIT_DATASETS.items():
+        if sorted(models.info) == list(ids) and (cam.width, cam.height) == size:
+            return name
+    return None
+
+
 def load_targets(root: Path, split: str, images: set[tuple[int, int]] | None = None) -> tuple[list[dict], str]:
     """The BOP19 targets [{"scene_id", "im_id", "obj_id", "inst_count"}] and where they came from: the dataset's
     ``test_targets_bop19.json``, else computed from ``split`` with BOP's 10 % rule; only those of ``images``

@@ -13,7 +13,7 @@ import numpy as np
 from tqdm import tqdm
 
 from argen.h5 import LabelFile
-from detector.bop_eval import dataset_pixel_centres, score_bop19
+from detector.bop_eval import dataset_pixel_centres, score_bop19, toolkit_dataset_name
 from detector.errors import DetectorError
 from detector.infer import Predictor, estimate
 from detector.metrics import THRESHOLDS, accuracy, accuracy_curve, match_frame, pose_error, prf
@@ -49,8 +49,10 @@ def evaluate(predictor: Predictor, label_path: str | Path, out_dir: str | Path, 
 
     Ground-truth instances with ``visib_fract < min_visib`` are ignored (neither missed nor matched). poser: a
     two-stage model's stage 2 (see :func:`estimate`). The BOP results file is ``METHOD_DATASET-SPLIT.csv``
-    (:func:`detector.report.bop_csv_name`): ``method``, ``dataset_name`` (default: the label file's source dataset
-    folder name, letters and digits only) and the label file's source split.
+    (:func:`detector.report.bop_csv_name`): ``method``, ``dataset_name`` (default: the BOP toolkit's name for a
+    capture with one of its datasets' objects and image size, :func:`detector.bop_eval.toolkit_dataset_name`, such as
+    ``lmo`` for the 8 LM-O objects, so the toolkit runs on it unmodified; else the label file's source dataset folder
+    name, letters and digits only) and the label file's source split.
     BOP19 Average Recall (``bop19``): the BOP CSV's poses scored on the BOP dataset the label file was made from
     (``bop_dataset``, default the label file's source dataset), the targets of the evaluated images only; skipped
     with the reason in summary["bop19"]["skipped"] when that folder is gone or cannot be scored.
@@ -67,11 +69,13 @@ def evaluate(predictor: Predictor, label_path: str | Path, out_dir: str | Path, 
     icp_status = {"accepted": 0, "rejected": 0, "skipped": 0}
     images: set[tuple[int, int]] = set()
     with LabelFile(label_path) as lf:
-        csv_name = bop_csv_name(method, dataset_name or default_dataset_name(lf.attrs.get("source_dataset", "")),
-                                str(lf.attrs.get("source_split") or "test"))
+        split = str(lf.attrs.get("source_split") or "test")
+        root = bop_dataset or lf.attrs.get("source_dataset") or None
+        toolkit_name = toolkit_dataset_name(root, split) if root else None
+        csv_name = bop_csv_name(method, dataset_name or toolkit_name or default_dataset_name(
+            lf.attrs.get("source_dataset", "")), split)
         table = lf.objects
-        source = (bop_dataset or lf.attrs.get("source_dataset") or None, str(lf.attrs.get("source_split") or "test"),
-                  str(lf.attrs.get("source_argen_json") or ""))
+        source = (root, split, str(lf.attrs.get("source_argen_json") or ""))
         objects = ObjectInfo.from_table(table)
         idx = range(lf.num_frames) if frames is None else frames
         it = idx
@@ -116,6 +120,8 @@ def evaluate(predictor: Predictor, label_path: str | Path, out_dir: str | Path, 
             images.add((int(frame.scene_id), int(frame.im_id)))
         num_frames = len(idx)
     scores = bop19_summary(bop_rows, images, *source, progress) if bop19 else {"skipped": "not asked for"}
+    if "skipped" not in scores:  # how the official toolkit can check these figures (report.md says it)
+        scores["toolkit_dataset"] = toolkit_name if csv_name.split("_", 1)[1].startswith(f"{toolkit_name}-") else None
     return _finish(gt_rows, counts, times, table, cfg, keys, icp, str(label_path), num_frames, bop_rows, out_dir,
                    device, icp_status if icp else None, csv_name, scores)
 

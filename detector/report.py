@@ -170,6 +170,12 @@ def bop19_markdown(summary: dict) -> list[str]:
               "matched greedily by score; VSD (delta 15 mm, tau 0.05-0.5 of the diameter), MSSD (0.05-0.5 of the "
               "diameter) and MSPD (5-50 px x width / 640) recalls averaged over their thresholds; AR is their mean. "
               "**all** pools the targets, so it is not the mean of the rows.", ""]
+    name = b.get("toolkit_dataset")
+    lines += [f"BOP toolkit check, unmodified: link `{b['dataset']}` as `$BOP_PATH/{name}`, set `BOP_RESULTS_PATH` to "
+              f"this folder and run `scripts/eval_bop19_pose.py --result_filenames {summary['bop_csv']}` (README, "
+              "\"Using argen data with the BOP toolkit\")." if name else
+              "The BOP toolkit needs an entry for this dataset's name before it can score this file (README, \"Using "
+              "argen data with the BOP toolkit\").", ""]
     return lines
 
 

@@ -15,7 +15,7 @@ from typer.testing import CliRunner
 from argen import bop
 from argen.cli.app import app as argen_app
 from detector import bop19
-from detector.bop_eval import ModelSet, render_depth, score_bop19
+from detector.bop_eval import ModelSet, render_depth, score_bop19, toolkit_dataset_name
 from detector.report import bop_row, parse_bop_row, read_bop_csv
 
 DATA = Path(__file__).resolve().parents[2] / "shared/data"
@@ -120,6 +120,7 @@ def test_rendered_model_depth_lies_on_the_depth_image(tmp_path):
                                        str(tmp_path / "ds"), "--seed", "2", "--quiet"])
     assert r.exit_code == 0, r.output
     root, split = tmp_path / "ds", "train_pbr"
+    assert toolkit_dataset_name(root, split) is None  # the built-in objects: no dataset the toolkit knows
     models = ModelSet(root)
     sc = bop.load_scene(root, split, 0)
     n = 0
@@ -199,6 +200,8 @@ def test_reproduces_the_bop_toolkits_errors_and_scores(tmp_path):
     for name, h in fx["capture"]["depth_sha256_16"].items():
         img = cv2.imread(str(root / "train_pbr/000000/depth" / name), cv2.IMREAD_ANYDEPTH)
         assert hashlib.sha256(img.tobytes()).hexdigest()[:16] == h, f"depth {name} differs from the fixture's"
+    # the 8 LM-O objects at 640 x 480: the toolkit's "lmo" (its pbr splits take scenes 0-49 of any dataset)
+    assert toolkit_dataset_name(root, "train_pbr") == "lmo" and toolkit_dataset_name(root, "test") is None
     csv = tmp_path / "argen_lmo-train-pbr.csv"
     csv.write_text(fx["csv"])
     rows = read_bop_csv(csv)

@@ -30,8 +30,10 @@ def register(app: typer.Typer) -> None:
         method: str = typer.Option("argen", "--method", help="Method name of the BOP results file "
                                                               "METHOD_DATASET-SPLIT.csv (letters and digits)."),
         dataset_name: Optional[str] = typer.Option(None, "--dataset-name",
-                                                   help="Dataset name of the BOP results file (default: the "
-                                                        "label file's dataset folder, letters and digits only)."),
+                                                   help="Dataset name of the BOP results file (default: the BOP "
+                                                        "toolkit's name for a capture of lm / lmo / ycbv objects, "
+                                                        "else the label file's dataset folder, letters and digits "
+                                                        "only)."),
         bop_dataset: Optional[Path] = typer.Option(None, "--bop-dataset",
                                                    help="BOP dataset folder the label file was made from, for "
                                                         "BOP19 AR (default: the one the label file names)."),
