@@ -287,8 +287,13 @@ def read_rgb(path: str | os.PathLike) -> np.ndarray:
 
 
 def read_depth(path: str | os.PathLike, depth_scale: float) -> np.ndarray:
-    """Read a BOP depth PNG: (H,W) float32 metres, 0 = missing."""
-    img = _read_image(Path(path), cv2.IMREAD_ANYDEPTH)
+    """Read a BOP depth PNG: (H,W) float32 metres, 0 = missing. BOP depth is one 16-bit channel; anything else (an
+    8-bit colour or grey image given as depth) is an ArgenError, not depths of at most 255 units."""
+    img = _read_image(Path(path), cv2.IMREAD_UNCHANGED)
+    if img.dtype != np.uint16 or img.ndim != 2:
+        what = f"{img.shape[2]}-channel " if img.ndim == 3 else ""
+        raise ArgenError(f"{path} is a {what}{img.dtype.itemsize * 8}-bit image, not a depth image (one 16-bit "
+                         "channel)")
     return img.astype(np.float32) * np.float32(depth_scale / MM_PER_M)
 
 
@@ -496,11 +501,6 @@ class BopScene:
     gt_infos: dict[int, list[dict]]
 
     @property
-    def max_rotation_correction(self) -> float:
-        """The largest entry change that projecting this scene's ground-truth rotations onto SO(3) made."""
-        return max((g.R_correction for gts in self.gts.values() for g in gts), default=0.0)
-
-    @property
     def im_ids(self) -> list[int]:
         """Image ids that have both a camera and a ground truth entry, sorted."""
         return sorted(set(self.cameras) & set(self.gts))
@@ -538,6 +538,25 @@ def list_scenes(root: str | os.PathLike, split: str) -> list[int]:
 def load_scene_camera(path: str | os.PathLike) -> dict[int, FrameCamera]:
     """Read one ``scene_camera.json`` into ``{im_id: FrameCamera}`` (metres)."""
     return parse_scene_camera(_scene_json(Path(path), "scene_camera.json"), str(path))
+
+
+def depth_image_camera(path: str | os.PathLike) -> FrameCamera | None:
+    """The camera of a depth image inside a BOP scene (``SCENE/depth/IMID.png``): its entry in the scene's
+    ``scene_camera.json``; None when the path is not laid out so, the scene has no such file or it has no entry for
+    the image."""
+    path = Path(path)
+    scene_cam = path.parent.parent / "scene_camera.json"
+    if path.parent.name != "depth" or not path.stem.isdigit() or not scene_cam.is_file():
+        return None
+    return load_scene_camera(scene_cam).get(int(path.stem))
+
+
+def camera_file_near(path: str | os.PathLike) -> Path | None:
+    """The ``camera.json`` that holds an image's intrinsics: beside the image, one folder up (a recording), or at the
+    root of the BOP dataset whose scene holds it (``DATASET/SPLIT/SCENE/depth/IMID.png``); None when there is none."""
+    p = Path(path)
+    near = [p.parent, p.parent.parent] + ([p.parents[3]] if len(p.parents) > 3 else [])
+    return next((d / CAMERA_FILE for d in near if (d / CAMERA_FILE).is_file()), None)
 
 
 def load_scene(root: str | os.PathLike, split: str, scene_id: int) -> BopScene:

@@ -64,28 +64,41 @@ class PlacementConfig:
     instances_per_object: IntRange = (1, 1)  # copies of each drawn object (lchf: several)
     max_tries: int = 200  # placement attempts per instance before giving up on it
     min_gap: float = 0.005  # metres between footprints
+    beside: float = 0.5  # probability that an instance stands right next to one already placed (min_gap + 0-2 cm)
     stable_poses: int = 4  # most likely resting poses of each object to choose from
+    uniform_poses: float = 0.0  # share of draws uniform over those poses (people stand a box on its end; physics rarely)
 
 
 @dataclass
 class ClutterConfig:
-    """Desk clutter: random boxes and cylinders on the table around the board."""
+    """Distractors (argen.sim.distractors: mugs, bowls, bottles, boxes, books, tools, toys, cables, ...):
+    among the targets on the board, on the desk around it and on a shelf; all of them background."""
 
-    count: IntRange = (4, 8)
-    size: Range = (0.03, 0.15)  # metres, largest dimension
-    ring: Range = (0.3, 0.7)  # metres from the board centre
-    on_board: int = 0  # distractors placed on the board's free area too (occluders)
+    count: IntRange = (8, 16)  # on the desk around the board
+    ring: Range = (0.25, 0.8)  # metres from the board centre (desk distractors)
+    on_board: IntRange = (1, 4)  # on the board's free area, among the targets (occluders)
+    board_cover: float = 0.6  # probability that a printed sheet, cloth or mat covers the board's free area
+    near_target: float = 0.6  # probability that an on-board distractor stands right next to a target (0-1 cm)
+    scale: Range = (0.85, 1.2)  # factor on each distractor's real size
+    papers: IntRange = (0, 3)  # magazines and papers lying on the desk
+    monitor: float = 0.5  # probability of a monitor on the desk behind the board
+    shelf: float = 0.3  # probability of a shelf on a wall, with things on it
+    shelf_items: IntRange = (1, 4)
 
 
 @dataclass
 class SceneConfig:
-    """Table and lighting."""
+    """Room and lighting: a desk of random size (its edges may be in view), the floor below it, walls, lights."""
 
-    table_size: float = 2.5  # metres, square
-    table_color: tuple[int, int, int] = (150, 120, 90)
-    ambient: float = 0.3
-    light_intensity: Range = (1.2, 2.2)  # directional light (diffuse: intensity * cos / pi)
-    point_light_intensity: Range = (1.0, 3.0)  # point light (further divided by distance^2)
+    table_margin: Range = (0.1, 0.9)  # metres from the board's edge to each desk edge, drawn per edge
+    table_height: Range = (0.7, 0.78)  # metres from the floor to the desk top
+    walls: IntRange = (0, 2)  # walls beyond desk edges
+    wall_gap: Range = (0.0, 0.4)  # metres from a desk edge to its wall
+    ambient: Range = (0.15, 0.45)
+    light_intensity: Range = (1.0, 2.4)  # directional light (diffuse: intensity * cos / pi)
+    point_lights: IntRange = (1, 2)
+    point_light_intensity: Range = (0.8, 3.0)  # each point light (further divided by distance^2)
+    light_tint: float = 0.15  # largest change of a light's colour channels from white (warm or cool light)
 
 
 @dataclass
@@ -132,6 +145,16 @@ class NoiseConfig:
 
 
 @dataclass
+class ColourConfig:
+    """The colour camera's artefacts (argen.sim.colour): misregistration to the depth, blur, sensor noise."""
+
+    enabled: bool = True
+    shift_px: Range = (0.0, 2.0)  # colour image shifted against the depth by this many pixels, any direction
+    blur_px: Range = (0.0, 1.2)  # Gaussian blur sigma, pixels
+    noise: Range = (0.005, 0.025)  # sensor noise std, in [0, 1] colour units
+
+
+@dataclass
 class OutputConfig:
     frames_per_scene: int = 1000  # BOP convention for PBR-style folders
     split: str = "train_pbr"
@@ -163,7 +186,6 @@ class TemplateConfig:
     """A whole capture template (``templates/NAME.yaml``)."""
 
     name: str = "linemod"
-    description: str = ""
     sensor: str = "kinect_v1"  # argen/sensors/NAME.yaml: intrinsics, resolution, range and noise
     seed: int = 0
     objects: list[str] = field(default_factory=list)  # names or ids; empty = all available
@@ -174,6 +196,7 @@ class TemplateConfig:
     scene: SceneConfig = field(default_factory=SceneConfig)
     ar: ARConfig = field(default_factory=ARConfig)
     noise: NoiseConfig = field(default_factory=NoiseConfig)
+    colour: ColourConfig = field(default_factory=ColourConfig)
     output: OutputConfig = field(default_factory=OutputConfig)
 
 
@@ -266,12 +289,27 @@ def validate(obj: Any, where: str = "config") -> None:
                "placement instances_per_object must be 1 <= min <= max")
         _check(obj.max_tries >= 1, where, "placement max_tries must be at least 1")
         _check(obj.min_gap >= 0, where, "placement min_gap must be non-negative")
+        _check(0 <= obj.beside <= 1, where, "placement beside must lie in [0, 1]")
         _check(obj.stable_poses >= 1, where, "placement stable_poses must be at least 1")
+        _check(0 <= obj.uniform_poses <= 1, where, "placement uniform_poses must lie in [0, 1]")
     elif isinstance(obj, ClutterConfig):
-        _check(0 <= obj.count[0] <= obj.count[1], where, "clutter count must be 0 <= min <= max")
-        _check(0 < obj.size[0] <= obj.size[1], where, "clutter size must be 0 < min <= max")
+        for name in ("count", "on_board", "papers", "shelf_items"):
+            lo, hi = getattr(obj, name)
+            _check(0 <= lo <= hi, where, f"clutter {name} must be 0 <= min <= max")
         _check(0 <= obj.ring[0] <= obj.ring[1], where, "clutter ring must be 0 <= min <= max")
-        _check(obj.on_board >= 0, where, "clutter on_board must be non-negative")
+        _check(0 < obj.scale[0] <= obj.scale[1], where, "clutter scale must be 0 < min <= max")
+        for name in ("board_cover", "near_target", "monitor", "shelf"):
+            _check(0 <= getattr(obj, name) <= 1, where, f"clutter {name} must lie in [0, 1]")
+    elif isinstance(obj, SceneConfig):
+        _check(0 <= obj.table_margin[0] <= obj.table_margin[1], where, "scene table_margin must be 0 <= min <= max")
+        _check(0 < obj.table_height[0] <= obj.table_height[1], where, "scene table_height must be 0 < min <= max")
+        _check(0 <= obj.walls[0] <= obj.walls[1] <= 4, where, "scene walls must be 0 <= min <= max <= 4")
+        _check(0 <= obj.wall_gap[0] <= obj.wall_gap[1], where, "scene wall_gap must be 0 <= min <= max")
+        _check(0 <= obj.point_lights[0] <= obj.point_lights[1], where, "scene point_lights must be 0 <= min <= max")
+        for name in ("ambient", "light_intensity", "point_light_intensity"):
+            lo, hi = getattr(obj, name)
+            _check(0 <= lo <= hi, where, f"scene {name} must be 0 <= min <= max")
+        _check(0 <= obj.light_tint < 1, where, "scene light_tint must lie in [0, 1)")
     elif isinstance(obj, ARConfig):
         _check(obj.min_markers >= 1, where, "ar min_markers must be at least 1")
         _check(obj.max_reproj_px > 0, where, "ar max_reproj_px must be positive")
@@ -292,6 +330,10 @@ def validate(obj: Any, where: str = "config") -> None:
                      "offset_sigma", "dark_level", "textureless_level"):
             _check(getattr(obj, name) >= 0, where, f"noise {name} must be non-negative")
         _check(obj.edge_fatten_px >= 0, where, "noise edge_fatten_px must be non-negative")
+    elif isinstance(obj, ColourConfig):
+        for name in ("shift_px", "blur_px", "noise"):
+            lo, hi = getattr(obj, name)
+            _check(0 <= lo <= hi, where, f"colour {name} must be 0 <= min <= max")
     elif isinstance(obj, OutputConfig):
         _check(obj.frames_per_scene >= 1, where, "output frames_per_scene must be at least 1")
         _check(obj.depth_scale > 0, where, "output depth_scale must be positive")

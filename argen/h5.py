@@ -226,11 +226,6 @@ class LabelFile:
     def __len__(self) -> int:
         return self.num_frames
 
-    def frame_range(self, i: int) -> tuple[int, int]:
-        """Rows [start, stop) of frame ``i`` in the points/* datasets."""
-        self._check_index(i)
-        return int(self._pt_off[i]), int(self._pt_off[i + 1])
-
     def _check_index(self, i: int) -> None:
         if not (0 <= int(i) < self.num_frames):
             raise IndexError(f"frame {i} out of range (file has {self.num_frames} frames)")

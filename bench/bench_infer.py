@@ -80,7 +80,7 @@ def two_stage_times(ck, frames: list, device: str) -> dict[str, float]:
     from detector.infer import checkpoint_objects, checkpoint_pose_config, checkpoint_poser, estimate, network_predictor
 
     objects = checkpoint_objects(ck)[0]
-    cfg = checkpoint_pose_config(ck, None, 0.02, True)
+    cfg = checkpoint_pose_config(ck, None, True)
     pred, poser = network_predictor(ck, seed=0, device=device), checkpoint_poser(ck, objects, device)
     runs, dets = [], []
     for k, f in enumerate([frames[0], *frames]):  # the first is a warm-up

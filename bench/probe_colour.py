@@ -65,7 +65,7 @@ def main() -> None:
         n = lf.num_frames if a.frames is None else min(a.frames, lf.num_frames)
     for name in a.change:
         change = CHANGES[name]
-        cfg = checkpoint_pose_config(ckpt, None, 0.02, True, None)
+        cfg = checkpoint_pose_config(ckpt, None, True, None)
         base_pred = network_predictor(ckpt, 0)
         poser = checkpoint_poser(ckpt, checkpoint_objects(ckpt)[0], "cpu", 0)
         pred = recolouring_predictor(base_pred, change) if a.stage in ("both", "stage1") else base_pred

@@ -20,26 +20,27 @@ from detector.errors import DetectorError
 
 @dataclass
 class CropNetConfig:
-    """Widths of the stage-2 network. width: first per-point width; k: neighbours per edge-convolution;
-    norm_before_max: the edge-convolutions normalise every (point, neighbour) feature before the max over the
-    neighbours (the first design) instead of the max's result (k times fewer LayerNorms: a training step about a
-    fifth faster on a 2-core CPU)."""
+    """Widths of the stage-2 network. width: first per-point width; k: neighbours per edge-convolution."""
 
     width: int = 64
     edge_width: int = 128
     global_width: int = 128
     head_width: int = 128
     k: int = 12
-    norm_before_max: bool = False
 
     def to_dict(self) -> dict:
         return asdict(self)
 
     @classmethod
     def from_dict(cls, d: dict) -> "CropNetConfig":
-        """From :meth:`to_dict`'s mapping; a model file written before ``norm_before_max`` existed normalised
-        before the max."""
-        return cls(**{"norm_before_max": True, **d})
+        """From :meth:`to_dict`'s mapping. Model files of the edge-convolution's first design, which normalised
+        before the max, are refused; the files written since store ``norm_before_max: false`` (checkpoints/lm8.pt),
+        which is this network."""
+        d = dict(d)
+        if d.pop("norm_before_max", False):
+            raise DetectorError("the stage-2 network normalises before the max (norm_before_max): a design this "
+                                "detector no longer runs")
+        return cls(**d)
 
 
 def knn(xyz: torch.Tensor, k: int) -> torch.Tensor:
@@ -49,37 +50,27 @@ def knn(xyz: torch.Tensor, k: int) -> torch.Tensor:
 
 
 class EdgeConv(nn.Module):
-    """``relu(LN(max_j (W1 x_i + W2 (x_j - x_i))))`` over the neighbours j of i, or with ``norm_before_max``
-    ``max_j relu(LN(W1 x_i + W2 (x_j - x_i)))``; the linear map is applied before the gather (``(W1 - W2) x_i +
-    W2 x_j``). Without gradients (inference) the max is a running maximum over the k neighbour slices (B, n, out):
-    no (B, n, k, out) tensor, and several times faster on a CPU than a gather and a max over that tensor's neighbour
-    axis. Training does the same with :class:`_NeighbourMax`, which also keeps which neighbour won for the backward
-    (the design that normalises before the max keeps a gather to the (B, n, k, out) tensor)."""
+    """``relu(LN(max_j (W1 x_i + W2 (x_j - x_i))))`` over the neighbours j of i; the linear map is applied before
+    the gather (``(W1 - W2) x_i + W2 x_j``), so only the neighbours' max of ``W2 x_j`` is needed. Without gradients
+    (inference) the max is a running maximum over the k neighbour slices (B, n, out): no (B, n, k, out) tensor, and
+    several times faster on a CPU than a gather and a max over that tensor's neighbour axis. Training does the same
+    with :class:`_NeighbourMax`, which also keeps which neighbour won for the backward."""
 
-    def __init__(self, c_in: int, c_out: int, norm_before_max: bool = False):
+    def __init__(self, c_in: int, c_out: int):
         super().__init__()
         self.self_lin = nn.Linear(c_in, c_out)
         self.nb_lin = nn.Linear(c_in, c_out, bias=False)
         self.norm = nn.LayerNorm(c_out)
-        self.norm_before_max = norm_before_max
 
     def forward(self, x: torch.Tensor, idx: torch.Tensor) -> torch.Tensor:
         B, n, k = idx.shape
         b = self.nb_lin(x)  # (B, n, out)
         a = self.self_lin(x) - b
-        if torch.is_grad_enabled() and self.norm_before_max:  # training the first design: a gather to (B, n, k, out)
-            nb = torch.gather(b, 1, idx.reshape(B, n * k, 1).expand(-1, -1, b.shape[-1])).reshape(B, n, k, -1)
-            return torch.relu(self.norm(a[:, :, None, :] + nb).max(dim=2).values)  # = max of the relu
         flat = b.reshape(B * n, -1)
         rows = idx + (torch.arange(B, device=idx.device) * n)[:, None, None]  # (B, n, k) rows of flat
-        if torch.is_grad_enabled():  # a_i is the same for every neighbour j, so only the neighbours' max is needed
+        if torch.is_grad_enabled():
             return torch.relu(self.norm(a + _NeighbourMax.apply(flat, rows.reshape(B * n, k)).reshape(B, n, -1)))
         # inference: a running maximum over the k neighbour slices, the same values several times faster on a CPU
-        if self.norm_before_max:
-            out = torch.relu(self.norm(a + flat[rows[:, :, 0]]))
-            for j in range(1, k):
-                out = torch.maximum(out, torch.relu(self.norm(a + flat[rows[:, :, j]])))
-            return out
         m = flat[rows[:, :, 0]]
         for j in range(1, k):
             m = torch.maximum(m, flat[rows[:, :, j]])
@@ -130,8 +121,8 @@ class CropNet(nn.Module):
         self.cfg, self.num_classes = cfg, num_classes
         w, e, g, h = cfg.width, cfg.edge_width, cfg.global_width, cfg.head_width
         self.point = mlp([9 + num_classes, w, w])
-        self.edge1 = EdgeConv(w, w, cfg.norm_before_max)
-        self.edge2 = EdgeConv(w, e, cfg.norm_before_max)
+        self.edge1 = EdgeConv(w, w)
+        self.edge2 = EdgeConv(w, e)
         self.glob = mlp([w + w + e, g])
         self.head = nn.Sequential(mlp([w + w + e + g, h, h // 2]), nn.Linear(h // 2, 4 * num_classes))
 

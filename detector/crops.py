@@ -56,17 +56,12 @@ class CropConfig:
 
     @classmethod
     def from_dict(cls, d: dict) -> "CropConfig":
-        """A CropConfig from :meth:`to_dict`'s mapping. Models trained before the jitter was relative to the
-        diameter store ``jitter`` / ``jitter_clip`` in metres; those only shaped the training crops, so they are
-        dropped (the loaded config is for inference) rather than reinterpreted."""
-        d = {k: v for k, v in d.items() if k not in LEGACY_KEYS}
+        """A CropConfig from :meth:`to_dict`'s mapping."""
+        d = dict(d)
         if "neighbour_offset" in d:
             d["neighbour_offset"] = tuple(d["neighbour_offset"])
         return cls(**d)
 
-
-#: CropConfig keys of older model files that inference does not use (the training jitter in metres).
-LEGACY_KEYS = ("jitter", "jitter_clip")
 
 
 def ball_rows(xyz: np.ndarray, centre: np.ndarray, radius: float) -> np.ndarray:

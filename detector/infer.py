@@ -43,9 +43,7 @@ from detector.pose import (
 class CropPoseConfig:
     """Pose-from-crop options. fg_threshold: foreground probability for a correspondence; inlier: RANSAC
     inlier distance as a fraction of the diameter; hypotheses: RANSAC hypotheses; min_fg: fewest foreground
-    points for a pose; recentre: crop again around the first pose's centre and redo it this many times;
-    recentre_min_shift: from the third crop on, only crops whose centre moved by more than this fraction of the
-    diameter in the previous pass are cut again (the others have settled; 0 = all of them);
+    points for a pose; recentre: crop again around the latest pose's centre and redo it this many times;
     samples: from the second crop on, each crop feeds the network this many random subsets of its points
     (disjoint where the crop holds enough) and pools their correspondences: the network sees a crop at the
     density it was trained on, ``crop.num_points``, while the pose gets several times more points (1 = one
@@ -61,11 +59,15 @@ class CropPoseConfig:
     hypotheses: int = 128
     min_fg: int = 8
     recentre: int = 1
-    recentre_min_shift: float = 0.0
     samples: int = 1
     verify: int = 16
     verify_trim: float = 0.7
     fit_points: int = 256
+
+
+#: CropPoseConfig keys that model files may hold but that are gone: ``recentre_min_shift`` limited the third and
+#: later crops, which no model cuts any more (checkpoints/lm8.pt stores 0.04 with ``recentre`` 1: no effect).
+RETIRED_INFER_KEYS = ("recentre_min_shift",)
 
 
 def crop_subsets(rows: np.ndarray, num_points: int, samples: int, rng: np.random.Generator) -> list[np.ndarray]:
@@ -178,11 +180,8 @@ class CropPoser:
         rng = np.random.default_rng(self.seed)
         centres = [d.control_points[8] for d in dets]
         results: list = [None] * len(dets)  # (R, t, foreground rows of features, other hypotheses) of each detection
-        moved = [np.inf] * len(dets)  # how far each crop's centre moved in the last pass, metres
         for it in range(1 + self.cfg.recentre):
-            todo = [k for k in range(len(dets)) if it == 0 or (results[k] is not None and (
-                it == 1 or self.cfg.recentre_min_shift <= 0
-                or moved[k] > self.cfg.recentre_min_shift * self.objects.diameters[dets[k].obj_id]))]
+            todo = [k for k in range(len(dets)) if it == 0 or results[k] is not None]
             if not todo:
                 break
             preds = self._run(features, [centres[k] for k in todo], [dets[k].obj_id for k in todo],
@@ -198,8 +197,7 @@ class CropPoser:
                     continue
                 R, t, fg, others = res
                 results[k] = (R, t, np.unique(rows[fg]), others)
-                new = R @ self.objects.control_points[oid][8] + t
-                moved[k], centres[k] = float(np.linalg.norm(new - centres[k])), new
+                centres[k] = R @ self.objects.control_points[oid][8] + t
         out = []
         for d, r in zip(dets, results):
             if r is None:
@@ -225,7 +223,7 @@ class Predictions:
 
     xyz: (K,3) float metres; class_probs: (K,C+1) float, column 0 background, column c object ``class_ids[c-1]``;
     class_ids: C object ids; control_points: (K,9,3) float metres (point + offsets); confidence: (K,) in [0,1];
-    point_index: (K,) int64 input row of each point; timings: seconds spent, e.g. {"sampling", "network"}.
+    timings: seconds spent, e.g. {"sampling", "network"}.
     """
 
     xyz: np.ndarray
@@ -233,7 +231,6 @@ class Predictions:
     class_ids: list[int]
     control_points: np.ndarray
     confidence: np.ndarray
-    point_index: np.ndarray
     timings: dict = field(default_factory=dict)
 
     @property
@@ -259,7 +256,7 @@ def oracle_predictor(num_points: int | None = None, seed: int = 0) -> Predictor:
         cls[frame.semantic[rows] == 0] = 0
         probs = np.eye(len(ids) + 1, dtype=np.float32)[cls]
         return Predictions(frame.features[rows, :3].astype(np.float64), probs, ids,
-                           frame.control_points[rows].astype(np.float64), np.ones(len(rows)), rows.astype(np.int64))
+                           frame.control_points[rows].astype(np.float64), np.ones(len(rows)))
 
     return predict
 
@@ -291,7 +288,7 @@ def network_predictor(checkpoint, seed: int = 0, device: str | None = None) -> P
         xyz = np.asarray(frame.features, np.float64)[rows[kp], :3]  # metres, exactly the input points
         offsets = out["offsets"][0].double().cpu().numpy()
         return Predictions(xyz, torch.softmax(out["logits"][0].float(), -1).cpu().numpy(), list(checkpoint.class_ids),
-                           xyz[:, None, :] + offsets, out["confidence"][0].double().cpu().numpy(), rows[kp],
+                           xyz[:, None, :] + offsets, out["confidence"][0].double().cpu().numpy(),
                            {"sampling": t1 - t0, "network": t2 - t1})
 
     return predict
@@ -327,17 +324,33 @@ def checkpoint_objects(ckpt) -> tuple[ObjectInfo, dict[int, str]]:
     return ObjectInfo.from_table(o), {int(i): str(n) for i, n in zip(o["ids"], o["names"])}
 
 
-def pose_config(tau: float, cell: float, icp: bool, base: PoseConfig | None = None) -> PoseConfig:
-    """A PoseConfig from CLI options, checked (metres); ``base`` gives the other settings."""
+def check_label_objects(ckpt, table) -> None:
+    """A label file to score a checkpoint on must show it objects it learned: the two share at least one object
+    id, and a shared id is the same object (same diameter, to 0.1 %; ids alone say little: the built-in stand-ins
+    and the LineMOD objects share ids 1-5). table: the label file's ``argen.h5.ObjectTable``. Objects that only the
+    label file has are allowed (a test set of more objects); their instances count as missed."""
+    o = ckpt.objects
+    learned = {int(i): (str(n), float(d)) for i, n, d in zip(o["ids"], o["names"], o["diameters"])}
+    shared = [int(i) for i in table.ids if int(i) in learned]
+    if not shared:
+        raise DetectorError("the label file shares no object with the model (label file: "
+                            f"{', '.join(f'{n} ({int(i)})' for i, n in zip(table.ids, table.names))}; model: "
+                            f"{', '.join(f'{n} ({i})' for i, (n, _) in learned.items())})")
+    for i, n, d in zip(table.ids, table.names, table.diameters):
+        if int(i) in learned and abs(float(d) - learned[int(i)][1]) > 1e-3 * learned[int(i)][1]:
+            name, dia = learned[int(i)]
+            raise DetectorError(f"object {int(i)} of the label file ({n}, diameter {1000 * float(d):.1f} mm) is not "
+                                f"the model's object {int(i)} ({name}, {1000 * dia:.1f} mm)")
+
+
+def pose_config(tau: float, icp: bool, base: PoseConfig | None = None) -> PoseConfig:
+    """A PoseConfig from CLI options, checked; ``base`` gives the other settings."""
     if not 0 <= tau <= 1:
         raise DetectorError(f"--tau must be in [0, 1], got {tau}")
-    if not 0 < cell < 1:
-        raise DetectorError(f"--cell is metres and must be in (0, 1), got {cell}")
-    return replace(base or PoseConfig(), tau=tau, cell=cell, icp=icp)
+    return replace(base or PoseConfig(), tau=tau, icp=icp)
 
 
-def checkpoint_pose_config(ckpt, tau: float | None, cell: float, icp: bool, min_score: float | None = None
-                           ) -> PoseConfig:
+def checkpoint_pose_config(ckpt, tau: float | None, icp: bool, min_score: float | None = None) -> PoseConfig:
     """The pose settings of a checkpoint (those stored with a two-stage model, e.g. its thresholds), with the CLI's
     options over them; ``tau`` / ``min_score`` None keep the model's (the paper's tau 0.8 and no score threshold
     for a model that stores none)."""
@@ -349,7 +362,7 @@ def checkpoint_pose_config(ckpt, tau: float | None, cell: float, icp: bool, min_
         if not 0 <= min_score <= 1:
             raise DetectorError(f"--min-score must be in [0, 1], got {min_score}")
         base = replace(base, min_score=min_score)
-    return pose_config(base.tau if tau is None else tau, cell, icp, base)
+    return pose_config(base.tau if tau is None else tau, icp, base)
 
 
 def checkpoint_poser(ckpt, objects: ObjectInfo, device: str = "cpu", seed: int = 0):
@@ -359,5 +372,10 @@ def checkpoint_poser(ckpt, objects: ObjectInfo, device: str = "cpu", seed: int =
     p = ckpt.pose
     support = float(ckpt.pose_config.get("support_distance", PoseConfig.support_distance))
     floor = float(ckpt.pose_config.get("support_floor", PoseConfig.support_floor))
+    stored = {k: v for k, v in (p.get("infer_config") or {}).items() if k not in RETIRED_INFER_KEYS}
+    try:
+        cfg = CropPoseConfig(**stored)
+    except TypeError as exc:
+        raise DetectorError(f"the checkpoint's stage-2 settings are not understood ({exc})") from None
     return CropPoser(ckpt.pose_net, p["class_ids"], objects, CropConfig.from_dict(p["crop_config"]),
-                     p["normalisation"], CropPoseConfig(**(p.get("infer_config") or {})), device, seed, support, floor)
+                     p["normalisation"], cfg, device, seed, support, floor)

@@ -97,7 +97,7 @@ class Detection:
     control_points: (9,3) float64 metres, the aggregated predicted control points (camera frame);
     members: (S,) int64 rows of the prediction arrays that voted for it; refined: the ICP pose was kept;
     icp: what ICP did - "" (not run), "accepted", "rejected" (it did not improve the fit: pose unchanged),
-    "skipped" (too few scene points); fit_rms: (before, after) trimmed point-to-plane RMS, metres, when run;
+    "skipped" (too few scene points);
     points: (P,) int64 rows of the frame cloud that are this instance's (a two-stage model's crop foreground),
     or None (ICP then carries ``members`` to the cloud); alternatives: other candidate poses [(R, t), ...], best
     first (a two-stage model's other verified RANSAC hypotheses), from which ICP also starts.
@@ -112,7 +112,6 @@ class Detection:
     members: np.ndarray = field(repr=False)
     refined: bool = False
     icp: str = ""
-    fit_rms: tuple[float, float] | None = None
     points: np.ndarray | None = field(default=None, repr=False)
     alternatives: list | None = field(default=None, repr=False)
 
@@ -578,13 +577,13 @@ def refine(detections: list[Detection], xyz: np.ndarray, objects: ObjectInfo, cf
             continue
         fit = pts if cfg.icp_points <= 0 or len(pts) <= cfg.icp_points else \
             pts[np.linspace(0, len(pts) - 1, cfg.icp_points).round().astype(np.int64)]
-        R, t, ok, rms = refine_pose(fit, d.obj_id, d.R, d.t, objects, cfg, d.alternatives)
+        R, t, ok, _ = refine_pose(fit, d.obj_id, d.R, d.t, objects, cfg, d.alternatives)
         score = d.score
         if d.points is not None:  # a two-stage detection: its score is the support of its points, at the new pose
             tree, normals = objects.surface(d.obj_id)
             score = surface_support(pts, tree, normals, R, t,
                                     support_radius(cfg.support_distance, cfg.support_floor, objects.diameters[d.obj_id]))
-        out.append(replace(d, R=R, t=t, score=score, refined=ok, icp="accepted" if ok else "rejected", fit_rms=rms))
+        out.append(replace(d, R=R, t=t, score=score, refined=ok, icp="accepted" if ok else "rejected"))
     if timings is not None:
         timings["icp"] = timings.get("icp", 0.0) + time.perf_counter() - t0
     return out

@@ -73,7 +73,7 @@ def load_bop_frame(split_dir: Path, scene_id: int, im_id: int, **kw) -> PointInp
     split_dir = Path(split_dir)
     scene = bop.load_scene(split_dir.parent, split_dir.name, scene_id)
     if im_id not in scene.cameras:
-        raise DetectorError(f"{split_dir}/{scene_id:06d}: no image {im_id} in scene_camera.json")
+        raise DetectorError(f"{split_dir}/{scene_id:06d}: the scene has no camera for image {im_id}")
     depth = scene.read_depth(im_id)
     rgb = scene.read_rgb(im_id)
     rgb = rgb if rgb is not None and rgb.shape[:2] == depth.shape else None
@@ -124,20 +124,10 @@ def load_ply(path: Path, max_points: int = MAX_POINTS, seed: int = 0) -> PointIn
     return PointInput(feats, view_camera(feats[:, :3]), None, PLY_VIEW, str(path))
 
 
-def bop_frame_camera(depth_png: Path):
-    """The ``bop.FrameCamera`` of a depth PNG inside a BOP scene (``SCENE/depth/IMID.png`` with the image in
-    ``SCENE/scene_camera.json``), or None when it is not one."""
-    scene_cam = depth_png.parent.parent / "scene_camera.json"
-    if depth_png.parent.name != "depth" or not depth_png.stem.isdigit() or not scene_cam.is_file():
-        return None
-    with argen_errors():
-        return bop.load_scene_camera(scene_cam).get(int(depth_png.stem))
-
-
 def load_input(spec: str, K: str | None = None, depth_scale: float | None = None, camera: Path | None = None,
                rgb: Path | None = None, max_points: int = MAX_POINTS, seed: int = 0) -> PointInput:
     """The input named on the command line: ``*.ply``, a depth ``*.png`` (intrinsics from --K, --camera, the
-    image's own entry in its BOP scene's scene_camera.json, or a camera.json found near it), or a BOP frame
+    image's own camera in its BOP scene, or a camera.json found near it: :mod:`argen.bop`), or a BOP frame
     ``SPLIT_DIR/SCENE_ID/IM_ID``."""
     p = Path(spec)
     if p.suffix.lower() == ".ply":
@@ -148,14 +138,14 @@ def load_input(spec: str, K: str | None = None, depth_scale: float | None = None
         if not p.is_file():
             raise DetectorError(f"depth image not found: {p}")
         scale = 1.0
+        with argen_errors():
+            frame_cam = bop.depth_image_camera(p) if K is None and camera is None else None
         if K is not None:
             Km = parse_K(K)
-        elif camera is None and (frame_cam := bop_frame_camera(p)) is not None:
+        elif frame_cam is not None:
             Km, scale = frame_cam.K, frame_cam.depth_scale
         else:
-            # a camera.json beside the image, one folder up, or at the root of a BOP dataset (DATASET/SPLIT/SCENE/depth)
-            near = [p.parent, p.parent.parent] + ([p.parents[3]] if len(p.parents) > 3 else [])
-            cam = camera or next((d / bop.CAMERA_FILE for d in near if (d / bop.CAMERA_FILE).is_file()), None)
+            cam = camera or bop.camera_file_near(p)
             if cam is None:
                 raise DetectorError(f"{p}: give the intrinsics with --K fx,fy,cx,cy or --camera camera.json")
             with argen_errors():

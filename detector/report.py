@@ -93,13 +93,20 @@ def _pct(v) -> str:
     return "–" if v is None or (isinstance(v, float) and math.isnan(v)) else f"{100 * v:.1f}"
 
 
+def _clustering(cfg: dict) -> str:
+    """How centre votes became instances: density modes (``mode_radius`` > 0) or touching voxels of ``cell``."""
+    if cfg.get("mode_radius", 0) > 0:
+        return f"votes clustered at density modes within {cfg['mode_radius']:g} of the diameter"
+    return f"votes clustered in touching {cfg['cell'] * 100:.1f} cm voxels"
+
+
 def markdown(summary: dict) -> str:
     """The report as Markdown: Table II (ADD at 10 % without / with ICP), Table III (10/15/30 %), F1, timings."""
     objs = summary["objects"]
     icp = summary["icp"]
     lines = [f"# Evaluation of `{summary['label_file']}`", "",
-             f"{summary['num_frames']} frames, tau {summary['config']['tau']}, voting cell "
-             f"{summary['config']['cell'] * 100:.1f} cm. Metric: ADD (ADD-S for symmetric objects, marked *); "
+             f"{summary['num_frames']} frames, tau {summary['config']['tau']}, {_clustering(summary['config'])}. "
+             "Metric: ADD (ADD-S for symmetric objects, marked *); "
              "a pose is correct under the given share of the object diameter. Per object and frame only the k "
              "best-scoring poses count, k its instances, matched greedily by score (BOP19's rule: what a user reads).",
              "",

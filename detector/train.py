@@ -47,9 +47,11 @@ from detector.model import ModelConfig, PoseNet, preset
 #: Keys of a batch that are labels or bookkeeping; every other key is a sampling index for the network.
 LABEL_KEYS = ("features", "cls", "instance", "control_points", "frame", "point_index")
 
-#: Config keys that may differ when resuming (they do not change the numbers of the steps already run).
-RESUME_FREE_KEYS = {"steps", "epochs", "checkpoint_every", "keep_every", "val_every", "val_frames", "num_workers",
-                    "device"}
+#: Config keys that may differ when resuming: they do not change the numbers of the steps (``steps`` / ``epochs``
+#: lengthen or shorten the schedule from the step reached; ``indices`` says where the same sampling indices are
+#: computed).
+RESUME_FREE_KEYS = frozenset({"steps", "epochs", "checkpoint_every", "val_every", "val_frames", "num_workers", "device",
+                              "indices"})
 
 METRIC_FIELDS = ["step", "epoch", "phase", "loss", "cls", "offset", "conf", "lr", "acc", "steps_per_s",
                  "val_loss", "val_acc"]
@@ -350,11 +352,12 @@ def set_rng_state(state: dict, device: torch.device) -> None:
         torch.cuda.set_rng_state(state["cuda"].cpu(), device)
 
 
-def check_resumable(saved: dict, cfg: TrainConfig, path: Path) -> None:
-    """A resumed run must use the settings that produced the checkpoint (bar RESUME_FREE_KEYS)."""
+def check_resumable(saved: dict, cfg, path: Path, free: frozenset = RESUME_FREE_KEYS) -> None:
+    """A resumed run must use the settings that produced the checkpoint (``saved``, a config dict), bar the keys
+    in ``free`` (settings that do not change the result, e.g. :data:`RESUME_FREE_KEYS` for this module's runs)."""
     now = config_to_dict(cfg)
     for key in sorted(set(saved) | set(now)):
-        if key not in RESUME_FREE_KEYS and saved.get(key) != now.get(key):
+        if key not in free and saved.get(key) != now.get(key):
             raise DetectorError(f"{path}: cannot resume with {key}={now.get(key)!r}; the run used "
                                 f"{key}={saved.get(key)!r}")
 
@@ -370,11 +373,11 @@ def run_checkpoint(out_dir: Path, resume: bool) -> Path:
 
 
 def restore_state(net: torch.nn.Module, opt, sched, model_state: dict, state: dict, cfg, path: Path,
-                  device: torch.device, start: int, total: int) -> None:
-    """Resume: check the run's settings (:func:`check_resumable`), load weights, optimiser, scheduler and RNG state;
-    the learning rate then follows this run's schedule of ``total`` steps from ``start`` (which differs from the
-    saved one when ``steps`` grew)."""
-    check_resumable(state["config"], cfg, path)
+                  device: torch.device, start: int, total: int, free: frozenset = RESUME_FREE_KEYS) -> None:
+    """Resume: check the run's settings (:func:`check_resumable` with the keys ``free`` to change), load weights,
+    optimiser, scheduler and RNG state; the learning rate then follows this run's schedule of ``total`` steps from
+    ``start`` (which differs from the saved one when ``steps`` grew)."""
+    check_resumable(state["config"], cfg, path, free)
     net.load_state_dict(model_state)
     opt.load_state_dict(state["optimizer"])
     sched.load_state_dict(state["scheduler"])

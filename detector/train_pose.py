@@ -36,6 +36,9 @@ from detector.train import (
 
 POSE_KIND = "crop-pose"
 POSE_METRICS = ["step", "epoch", "loss", "fg", "coord", "fg_acc", "crops", "lr", "steps_per_s"]
+#: PoseTrainConfig keys that may differ when resuming: they do not change the steps' numbers (``steps`` stretches
+#: or shortens the schedule from the step reached; the crop cache holds the same crops whatever its size).
+POSE_RESUME_FREE_KEYS = frozenset({"steps", "checkpoint_every", "keep_every", "num_workers", "cache_mb", "device"})
 
 
 @dataclass
@@ -115,7 +118,8 @@ def train_pose(cfg: PoseTrainConfig, train_path: str | Path, out_dir: str | Path
             if "optimizer" not in state:
                 raise DetectorError(f"{last_path} holds no stage-2 training state to resume from")
             start = int(part["step"])
-            restore_state(net, opt, sched, part["model_state"], state, cfg, last_path, device, start, cfg.steps)
+            restore_state(net, opt, sched, part["model_state"], {**state, "config": saved_settings(state["config"])},
+                          cfg, last_path, device, start, cfg.steps, POSE_RESUME_FREE_KEYS)
         out_dir.mkdir(parents=True, exist_ok=True)
         (out_dir / "config.yaml").write_text(yaml.safe_dump(config_to_dict(cfg), sort_keys=False))
         log = MetricsLog(out_dir / "metrics.csv", keep_until=start if resume else None, fields=POSE_METRICS)
@@ -180,6 +184,16 @@ def train_pose(cfg: PoseTrainConfig, train_path: str | Path, out_dir: str | Path
             ds.close()
     last = {k: float(np.mean([r[k] for r in recent])) for k in ("loss", "fg", "coord", "fg_acc")} if recent else {}
     return {"steps": step, "seconds": time.perf_counter() - t0, "last": last, "checkpoint": last_path}
+
+
+def saved_settings(saved: dict) -> dict:
+    """A stage-2 run's saved settings (a config dict) as this code writes them: runs started before
+    ``net.norm_before_max`` was removed store it as false, which is the one network there is now."""
+    net = dict(saved.get("net") or {})
+    if net.get("norm_before_max") is False:
+        del net["norm_before_max"]
+        return {**saved, "net": net}
+    return saved
 
 
 def load_pose_config(data: dict | None, overrides: dict | None = None) -> PoseTrainConfig:

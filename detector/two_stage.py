@@ -20,8 +20,8 @@ from detector.config import config_to_dict, load_preset, load_yaml
 from detector.errors import DetectorError
 from detector.infer import CropPoseConfig
 from detector.pose import PoseConfig
-from detector.train import make_config, train
-from detector.train_pose import load_pose_config, train_pose
+from detector.train import RESUME_FREE_KEYS, check_resumable, make_config, train
+from detector.train_pose import POSE_RESUME_FREE_KEYS, load_pose_config, saved_settings, train_pose
 
 #: The defaults of each section (``detector/presets/two-stage.yaml``): stage 1's overrides of the cpu training
 #: preset (centre votes only), stage 2's of PoseTrainConfig, and the pose and inference settings stored in the model
@@ -78,26 +78,35 @@ def load_two_stage_config(path: str | Path | None = None, overrides: dict | None
 
 
 def train_two_stage(cfg: TwoStageConfig, train_path: str | Path, out_dir: str | Path, resume: bool = False,
-                    progress: bool = True) -> Path:
+                    progress: bool = True, val_path: str | Path | None = None) -> Path:
     """Train stage 1 into ``out_dir/detect`` and stage 2 into ``out_dir/pose``, then write ``out_dir/model.pt``.
 
     A stage whose run is complete is not trained again; one that was interrupted is resumed (with ``resume``).
-    Returns the model file's path.
+    Resuming checks both stages' settings first: only those that do not change the result (e.g. ``stage2.cache_mb``,
+    the devices, more steps) may differ from the run's. val_path: a validation label file for stage 1 (its
+    ``metrics.csv`` gets val_loss / val_acc every ``stage1.val_every`` steps, and ``detect/best.pt`` keeps the
+    weights of the lowest); the model file takes the last weights of each stage. Returns the model file's path.
     """
     if int(os.environ.get("WORLD_SIZE", "1")) > 1:
-        raise DetectorError("the two-stage model trains in one process (on a GPU with --set stage1.device=cuda "
-                            "--set stage2.device=cuda); torchrun is for --preset cpu or paper")
+        raise DetectorError("the two-stage model trains in one process (on a GPU with --device cuda); torchrun is "
+                            "for --preset cpu or paper")
     out_dir = Path(out_dir)
     s1, s2, pose, infer = cfg.resolved()
+    d1, d2 = out_dir / "detect", out_dir / "pose"
+    done1, saved1 = _progress(d1 / "last.pt", "detect")
+    done2, saved2 = _progress(d2 / "last.pt", "pose")
+    if resume:  # before anything runs: a stage that is complete is not trained again, so its settings are checked here
+        if saved1 is not None:
+            check_resumable(saved1, s1, d1 / "last.pt", RESUME_FREE_KEYS)
+        if saved2 is not None:
+            check_resumable(saved_settings(saved2), s2, d2 / "last.pt", POSE_RESUME_FREE_KEYS)
     out_dir.mkdir(parents=True, exist_ok=True)
     (out_dir / "two_stage.yaml").write_text(yaml.safe_dump(config_to_dict(cfg), sort_keys=False))
-    d1, d2 = out_dir / "detect", out_dir / "pose"
-    done1 = _step(d1 / "last.pt", "detect")
     if done1 is None or done1 < s1.steps:
         if done1 is not None and not resume:
             raise DetectorError(f"{out_dir} holds an unfinished run; add --resume to continue it")
-        train(s1, train_path, d1, resume=done1 is not None, progress=progress)
-    done2 = _step(d2 / "last.pt", "pose")
+        train(s1, train_path, d1, val_path=val_path, resume=done1 is not None, progress=progress)
+    done2 = _progress(d2 / "last.pt", "pose")[0]
     if done2 is None or done2 < s2.steps:
         if done2 is not None and not resume:
             raise DetectorError(f"{out_dir} holds an unfinished run; add --resume to continue it")
@@ -110,9 +119,10 @@ def train_two_stage(cfg: TwoStageConfig, train_path: str | Path, out_dir: str | 
                           {"pose_config": pose, "train_file": str(train_path)})
 
 
-def _step(path: Path, stage: str) -> int | None:
-    """Steps done by the run whose last.pt is ``path`` (None: no such run)."""
+def _progress(path: Path, stage: str) -> tuple[int | None, dict | None]:
+    """(steps done, training settings) of the run whose last.pt is ``path``; (None, None): no such run."""
     if not path.is_file():
-        return None
+        return None, None
     payload = read_checkpoint(path)
-    return int(payload["pose"]["step"] if stage == "pose" else payload["step"])
+    part = payload["pose"] if stage == "pose" else payload
+    return int(part["step"]), (part.get("train_state") or {}).get("config")

@@ -11,6 +11,7 @@ os.environ.setdefault("PYOPENGL_PLATFORM", "osmesa")
 
 REPO = Path(__file__).resolve().parents[1]
 LM_DIR = REPO.parent / "shared" / "data" / "lm"
+YCBV_REAL_DIR = REPO.parent / "shared" / "data" / "ycbv_real"
 
 
 @pytest.fixture(scope="session")
@@ -20,3 +21,11 @@ def lm_models() -> Path:
     if not (d / "models_info.json").is_file():
         pytest.skip("shared LineMOD data not available")
     return d
+
+
+@pytest.fixture(scope="session")
+def ycbv_real() -> Path:
+    """The shared real YCB-Video development frames (BOP); skips the test when they are not there."""
+    if not (YCBV_REAL_DIR / "test" / "000000" / "scene_gt.json").is_file():
+        pytest.skip("shared ycbv_real data not available")
+    return YCBV_REAL_DIR

@@ -115,6 +115,62 @@ def test_depth_png_round_trip(tmp_path):
         bop.write_depth(tmp_path / "far.png", np.full((2, 2), 7.0, np.float32), 0.1)
 
 
+def test_depth_must_be_one_16_bit_channel(tmp_path):
+    """An 8-bit image read as depth would be depths of at most 255 units (a few cm): refused."""
+    import cv2
+
+    img = np.random.default_rng(1).integers(0, 255, (6, 8, 3), dtype=np.uint8)
+    for name, data in (("colour.png", img), ("grey.png", img[:, :, 0]), ("rgb16.png", img.astype(np.uint16) * 200)):
+        cv2.imwrite(str(tmp_path / name), data)
+        with pytest.raises(ArgenError, match=f"{name} is a .*-bit image, not a depth image"):
+            bop.read_depth(tmp_path / name, 1.0)
+
+
+def test_scene_jsons_written_are_read_back(tmp_path):
+    """What the writers put in scene_camera.json / scene_gt.json / scene_gt_info.json (millimetres, row-major)
+    the readers give back in metres: K, depth scale and camera pose per image, each instance's object, R and t."""
+    from scipy.spatial.transform import Rotation
+
+    rng = np.random.default_rng(4)
+    K = np.array([[572.4, 0, 325.3], [0, 573.6, 242.0], [0, 0, 1]])
+    written = {}
+    jsons = bop.SceneJsons(tmp_path, "test")
+    for scene_id, im_ids in ((0, [0, 1, 5]), (3, [2])):
+        for im_id in im_ids:
+            T = np.eye(4)
+            T[:3, :3], T[:3, 3] = Rotation.random(random_state=rng).as_matrix(), rng.uniform(-1, 1, 3)
+            gts = [(int(rng.integers(1, 9)), Rotation.random(random_state=rng).as_matrix(), rng.uniform(-0.3, 1.2, 3))
+                   for _ in range(int(rng.integers(0, 4)))]
+            infos = [{"visib_fract": float(rng.uniform())} for _ in gts]
+            jsons.add(scene_id, im_id, bop.camera_entry(K, 0.1, T), [bop.gt_entry(o, R, t) for o, R, t in gts], infos)
+            written[(scene_id, im_id)] = (T, gts, infos)
+    jsons.flush()
+    assert bop.list_scenes(tmp_path, "test") == [0, 3]
+    for (scene_id, im_id), (T, gts, infos) in written.items():
+        scene = bop.load_scene(tmp_path, "test", scene_id)
+        cam = scene.cameras[im_id]
+        assert np.allclose(cam.K, K) and cam.depth_scale == 0.1
+        assert np.allclose(cam.T_cam_world, T, atol=1e-9)
+        back = scene.gts[im_id]
+        assert [g.obj_id for g in back] == [o for o, _, _ in gts]
+        for g, (_, R, t) in zip(back, gts):
+            assert np.allclose(g.R, R, atol=1e-12) and np.allclose(g.t, t, atol=1e-12) and g.R_correction < 1e-12
+        assert scene.gt_infos[im_id] == infos
+        # a depth image of the scene finds its own camera; the dataset's camera.json is found from it too
+        depth = bop.image_path(tmp_path, "test", scene_id, im_id, "depth")
+        assert np.allclose(bop.depth_image_camera(depth).K, K)
+    assert bop.depth_image_camera(tmp_path / "test" / "000000" / "depth" / "000009.png") is None  # no such image
+    assert bop.depth_image_camera(tmp_path / "elsewhere" / "000000.png") is None
+    assert bop.camera_file_near(depth) is None
+    bop.save_camera(tmp_path / bop.CAMERA_FILE, K, 640, 480, 0.1)
+    assert bop.camera_file_near(depth) == tmp_path / bop.CAMERA_FILE
+    # written again (a resumed capture), the files keep the entries already there and add the new one
+    more = bop.SceneJsons(tmp_path, "test")
+    more.add(0, 7, bop.camera_entry(K, 1.0), [], [])
+    more.flush()
+    assert sorted(bop.load_scene(tmp_path, "test", 0).cameras) == [0, 1, 5, 7]
+
+
 def test_corrupt_scene_json_is_a_clear_error(tmp_path):
     d = bop.scene_dir(tmp_path, "test", 0)
     d.mkdir(parents=True)
@@ -295,7 +351,7 @@ def _gt_full_masks(ds, scene, im_id, K, width, height):
 def test_objects_cut_by_the_image_edge_count_their_whole_silhouette(tmp_path):
     """BOP toolkit's calc_gt_info rule: px_count_all, visib_fract and bbox_obj cover the whole silhouette, checked
     against the ground truth rendered on a canvas 3 x the image each way."""
-    ds = _capture(tmp_path, "near", "--frames", "6", "--seed", "3", "--set", "camera.distance=[0.35,0.45]")
+    ds = _capture(tmp_path, "near", "--frames", "8", "--seed", "3", "--set", "camera.distance=[0.4,0.5]")
     cut = 0
     for sid in bop.list_scenes(ds, "train_pbr"):
         sc = bop.load_scene(ds, "train_pbr", sid)

@@ -229,3 +229,61 @@ def test_capture_sim_with_each_sensor_profile(tmp_path):
         assert depth.shape == size and (depth > 0).mean() > 0.3
     res = runner.invoke(app, ["capture-sim", "--out", str(tmp_path / "x"), "--sensor", "sonar", "--quiet"])
     assert res.exit_code == 2 and res.output.startswith("argen: error: unknown sensor") and "Traceback" not in res.output
+
+
+def test_capture_sim_with_a_bop_camera_json_has_exactly_its_K_and_size(tmp_path):
+    import cv2
+
+    cam = {"fx": 533.25, "fy": 534.5, "cx": 161.75, "cy": 118.25, "width": 320, "height": 240, "depth_scale": 1.0}
+    (tmp_path / "camera.json").write_text(json.dumps(cam))
+    out = tmp_path / "o"
+    res = runner.invoke(app, ["capture-sim", "--out", str(out), "--frames", "3", "--camera", str(tmp_path / "camera.json"),
+                              "--set", "camera.distance=[0.9,1.1]", "--quiet"])
+    assert res.exit_code == 0, res.output
+    written = json.loads((out / "camera.json").read_text())
+    assert {k: written[k] for k in ("fx", "fy", "cx", "cy", "width", "height")} == \
+        {k: cam[k] for k in ("fx", "fy", "cx", "cy", "width", "height")}
+    K = np.array([[cam["fx"], 0, cam["cx"]], [0, cam["fy"], cam["cy"]], [0, 0, 1]])
+    scene_cam = json.loads((out / "train_pbr" / "000000" / "scene_camera.json").read_text())
+    assert scene_cam and all(np.array_equal(np.reshape(c["cam_K"], (3, 3)), K) for c in scene_cam.values())
+    for kind in ("depth", "rgb"):
+        for p in (out / "train_pbr" / "000000" / kind).iterdir():
+            assert cv2.imread(str(p), cv2.IMREAD_UNCHANGED).shape[:2] == (240, 320)
+    # a camera file without the image size is a one-line error
+    (tmp_path / "nosize.json").write_text(json.dumps({k: cam[k] for k in ("fx", "fy", "cx", "cy")}))
+    res = runner.invoke(app, ["capture-sim", "--out", str(tmp_path / "x"), "--camera", str(tmp_path / "nosize.json"),
+                              "--quiet"])
+    assert res.exit_code == 2 and "width and height" in res.output and "Traceback" not in res.output
+
+
+def test_colour_camera_artefacts_keep_geometry_and_labels(tmp_path):
+    """The colour camera's misregistration, blur and noise change the colour images only."""
+    plain, arte = tmp_path / "plain", tmp_path / "arte"
+    capture(plain, 2, {"colour.enabled": False, "noise.enabled": False, "seed": 4})
+    capture(arte, 2, {"colour.shift_px": [1.5, 2.0], "noise.enabled": False, "seed": 4})
+    a, b = files_of(plain), files_of(arte)
+    assert a.keys() == b.keys()
+    rgb = [k for k in a if "/rgb/" in k]
+    assert rgb and all(a[k] != b[k] for k in rgb)
+    assert all(a[k] == b[k] for k in a if "/rgb/" not in k and k != "argen.json")
+
+
+def test_colour_shift_moves_the_image_by_the_drawn_amount():
+    from argen.config import ColourConfig
+    from argen.sim.colour import apply_colour
+
+    img = np.zeros((60, 80, 3), np.uint8)
+    img[20:40, 30:50] = 200
+    cfg = ColourConfig(shift_px=(2.0, 2.0), blur_px=(0.0, 0.0), noise=(0.0, 0.0))
+    out, drawn = apply_colour(img, cfg, np.random.default_rng(0))
+    dx, dy = drawn["shift_px"]
+    assert np.hypot(dx, dy) == pytest.approx(2.0)
+
+    def centroid(im):
+        w = im[..., 0].astype(float)
+        ys, xs = np.mgrid[: w.shape[0], : w.shape[1]]
+        return np.array([(xs * w).sum(), (ys * w).sum()]) / w.sum()
+
+    # warpAffine maps source x to x + shift: the square's centroid moves by (dx, dy)
+    assert np.allclose(centroid(out) - centroid(img), [dx, dy], atol=0.05)
+    assert apply_colour(img, ColourConfig(enabled=False), np.random.default_rng(0))[0] is img

@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import torch
+import yaml
 from scipy.spatial.transform import Rotation
 from typer.testing import CliRunner
 
@@ -29,10 +30,11 @@ from detector.train_pose import load_pose_config
 
 @pytest.fixture(scope="module")
 def labels(tmp_path_factory):
-    """A 4-frame noisy capture-sim dataset of the built-in objects, labelled."""
+    """A 4-frame noisy capture-sim dataset of the built-in objects, labelled; no distractors on the board and the
+    objects apart, so that each shows enough points for the crop tests."""
     d = tmp_path_factory.mktemp("crops")
     r = CliRunner().invoke(argen_app, ["capture-sim", "--frames", "4", "--out", str(d / "ds"), "--seed", "8",
-                                       "--quiet"])
+                                       "--set", "clutter.on_board=[0,0]", "--set", "placement.beside=0", "--quiet"])
     assert r.exit_code == 0, r.output
     run_label(LabelRequest(dataset=d / "ds", split="train_pbr", out=d / "l.h5", progress=False,
                            cfg=LabelConfig(max_points=20000)))
@@ -175,16 +177,11 @@ def test_crop_centre_jitter_scales_with_the_diameter_and_is_clipped():
         assert np.allclose(off.std(0), 0.1 * dia, rtol=0.08)  # a larger object gets a larger centre error
         assert np.abs(off).max() <= 0.25 * dia + 1e-12
         assert np.abs(off).max() > 0.2 * dia  # the clip is reached, not far beyond the tail
-    # model files written when the jitter was in metres still load: those keys shaped training only
-    old = {**CropConfig().to_dict(), "jitter": 0.012, "jitter_clip": 0.03}
-    del old["centre_jitter"], old["centre_jitter_clip"]
-    assert CropConfig.from_dict(old) == CropConfig(**{k: v for k, v in old.items() if "jitter" not in k})
 
 
-@pytest.mark.parametrize("before", [True, False])
-def test_edge_convolution_equals_its_definition_per_point(before):
+def test_edge_convolution_equals_its_definition_per_point():
     torch.manual_seed(0)
-    conv = EdgeConv(5, 7, norm_before_max=before)
+    conv = EdgeConv(5, 7)
     x, idx = torch.randn(2, 9, 5), torch.randint(0, 9, (2, 9, 4))
     out = conv(x, idx)
     with torch.no_grad():  # inference takes the running-maximum path: the same values
@@ -193,12 +190,15 @@ def test_edge_convolution_equals_its_definition_per_point(before):
     for bi in range(2):
         for i in range(9):
             edges = torch.stack([W1 @ x[bi, i] + b1 + W2 @ (x[bi, j] - x[bi, i]) for j in idx[bi, i]])  # (k, 7)
-            ref = torch.relu(conv.norm(edges)).max(0).values if before else torch.relu(conv.norm(edges.max(0).values))
-            assert torch.allclose(out[bi, i], ref, atol=1e-5)
-    # a model file without the option normalised before the max
-    legacy = CropNetConfig().to_dict()
-    del legacy["norm_before_max"]
-    assert CropNetConfig.from_dict(legacy).norm_before_max and not CropNetConfig().norm_before_max
+            assert torch.allclose(out[bi, i], torch.relu(conv.norm(edges.max(0).values)), atol=1e-5)
+    # model files store the option that chose this design (checkpoints/lm8.pt); the other design is refused
+    assert CropNetConfig.from_dict({**CropNetConfig().to_dict(), "norm_before_max": False}) == CropNetConfig()
+    with pytest.raises(DetectorError, match="norm_before_max"):
+        CropNetConfig.from_dict({**CropNetConfig().to_dict(), "norm_before_max": True})
+    # a stage-2 run started when the option existed resumes: its saved settings name this network
+    from detector.train_pose import saved_settings
+
+    assert saved_settings({"net": {"k": 12, "norm_before_max": False}, "steps": 3}) == {"net": {"k": 12}, "steps": 3}
 
 
 def test_roll_about_the_ray_keeps_the_centre_and_model_coordinates():
@@ -375,7 +375,9 @@ def tiny_two_stage_args(s1_steps: int = 2, s2_steps: int = 3) -> list[str]:
 
 def test_two_stage_train_resume_eval_predict(labels, tmp_path):
     """The default `detector train` trains both stages into one model file that eval and predict take, with the
-    model's own threshold; stage 2 resumes where it stopped; a stage-2 run file alone is refused clearly."""
+    model's own threshold; --val validates stage 1, --device, --seed and --workers set both stages, the options of
+    one network are refused; stage 2 resumes where it stopped, with --set of settings that do not change the
+    result; a stage-2 run file alone is refused clearly."""
     import json
 
     from detector.checkpoint import load_checkpoint
@@ -386,18 +388,33 @@ def test_two_stage_train_resume_eval_predict(labels, tmp_path):
 
     run = CliRunner()
     out = tmp_path / "run"
+    for flag, value in (("--steps", "3"), ("--batch-size", "2"), ("--lr", "0.01"), ("--epochs", "1"),
+                        ("--seg-pretrain-steps", "1")):
+        r = run.invoke(det_app, ["train", str(labels), "--out", str(out), flag, value, *tiny_two_stage_args(2, 3)])
+        assert r.exit_code == 2 and r.stderr.count("\n") == 1 and f"{flag} applies to one network" in r.stderr
+    assert not out.exists()
     r = run.invoke(det_app, ["train", str(labels), "--out", str(out), *tiny_two_stage_args(2, 3),
-                             "--set", "stage2.keep_every=2"])
+                             "--set", "stage2.keep_every=2", "--set", "stage1.val_every=1", "--val", str(labels),
+                             "--device", "cpu", "--seed", "3", "--workers", "0"])
     assert r.exit_code == 0, r.output
     assert (out / "model.pt").is_file() and (out / "detect" / "last.pt").is_file() and (out / "pose" / "last.pt").is_file()
+    assert (out / "detect" / "best.pt").is_file()  # --val reached stage 1
+    assert all(row["val_loss"] for row in metric_rows(out / "detect"))
+    for stage in ("detect", "pose"):
+        used = yaml.safe_load((out / stage / "config.yaml").read_text())
+        assert (used["device"], used["seed"], used["num_workers"]) == ("cpu", 3, 0), stage
     ck = load_checkpoint(out / "model.pt")
     assert ck.pose_net is not None and ck.pose_config["centre_votes"] and ck.pose_config["tau"] == tau
     assert ck.pose["class_ids"] == ck.class_ids
-    # more stage-2 steps: resume continues stage 2 only (stage 1 is complete)
-    two = (out / "two_stage.yaml").read_text().replace("steps: 3", "steps: 5")
-    (out / "two_stage.yaml").write_text(two)
-    r = run.invoke(det_app, ["train", str(labels), "--out", str(out), "--resume", "--quiet"])
+    # a setting that changes the result is refused on resume, for either stage (stage 1 is complete: checked first)
+    for key in ("stage1.lr=0.01", "stage2.crop.radius=0.8", "stage1.num_points=512"):
+        r = run.invoke(det_app, ["train", str(labels), "--out", str(out), "--resume", "--quiet", "--set", key])
+        assert r.exit_code == 2 and r.stderr.count("\n") == 1 and "cannot resume with" in r.stderr, (key, r.output)
+    # more stage-2 steps and a smaller crop cache: resume continues stage 2 only (stage 1 is complete)
+    r = run.invoke(det_app, ["train", str(labels), "--out", str(out), "--resume", "--quiet", "--set", "stage2.steps=5",
+                             "--set", "stage2.cache_mb=0.5", "--device", "cpu"])
     assert r.exit_code == 0, r.output
+    assert yaml.safe_load((out / "two_stage.yaml").read_text())["stage2"]["cache_mb"] == 0.5
     rows = (out / "pose" / "metrics.csv").read_text().strip().splitlines()[1:]
     assert [int(x.split(",")[0]) for x in rows] == [1, 2, 3, 4, 5]
     assert len((out / "detect" / "metrics.csv").read_text().strip().splitlines()) == 3
@@ -437,6 +454,69 @@ def test_two_stage_train_resume_eval_predict(labels, tmp_path):
     # a stage-2 run's own last.pt is not a model
     r = run.invoke(det_app, ["eval", str(out / "pose" / "last.pt"), str(labels), "--out", str(rep)])
     assert r.exit_code == 2 and "model.pt" in r.stderr
+
+
+TINY_STAGE2 = {"steps": 40, "checkpoint_every": 5, "batch_frames": 2, "num_workers": 0, "warmup_steps": 2,
+               "crop.num_points": 64, "net.width": 16, "net.edge_width": 16, "net.global_width": 32,
+               "net.head_width": 32, "net.k": 8, "cache_mb": 64.0}
+
+#: Trains the stage-2 run of config file argv[1] on label file argv[2] into folder argv[3] (to be killed).
+STAGE2_SCRIPT = """
+import sys, torch, yaml
+from detector.train_pose import load_pose_config, train_pose
+torch.set_num_threads(1)
+train_pose(load_pose_config(yaml.safe_load(open(sys.argv[1]))), sys.argv[2], sys.argv[3], progress=False)
+"""
+
+
+def metric_rows(run) -> list[dict]:
+    """A stage-2 run's metrics.csv without the timing column."""
+    import csv
+
+    with open(run / "metrics.csv", newline="") as f:
+        return [{k: v for k, v in r.items() if k != "steps_per_s"} for r in csv.DictReader(f)]
+
+
+def test_stage2_killed_and_resumed_with_a_smaller_cache_equals_the_uninterrupted_run(labels, tmp_path):
+    """A stage-2 run killed by SIGKILL between two checkpoints and resumed, with its crop cache turned down (what
+    a run killed for memory needs), takes the steps of the run that was not interrupted: the same losses, the
+    same weights. A setting that changes the result is refused on resume."""
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+    from dataclasses import replace
+
+    from detector.checkpoint import read_checkpoint
+    from detector.config import config_to_dict
+    from detector.train_pose import train_pose
+
+    torch.set_num_threads(1)
+    cfg = load_pose_config(None, TINY_STAGE2)
+    train_pose(cfg, labels, tmp_path / "ref", progress=False)
+    (tmp_path / "cfg.yaml").write_text(yaml.safe_dump(config_to_dict(cfg)))
+    for attempt in range(3):
+        out = tmp_path / f"run{attempt}"
+        proc = subprocess.Popen([sys.executable, "-c", STAGE2_SCRIPT, str(tmp_path / "cfg.yaml"), str(labels),
+                                 str(out)], stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+        deadline = time.monotonic() + 120
+        while not (out / "last.pt").exists() and proc.poll() is None and time.monotonic() < deadline:
+            time.sleep(0.005)
+        os.kill(proc.pid, signal.SIGKILL)
+        _, err = proc.communicate()
+        assert proc.returncode in (-signal.SIGKILL, 0), err.decode()
+        if read_checkpoint(out / "last.pt")["pose"]["step"] < cfg.steps:
+            break  # really interrupted (else it finished first: try again)
+    done = read_checkpoint(out / "last.pt")["pose"]["step"]
+    assert done < cfg.steps and done % cfg.checkpoint_every == 0
+    with pytest.raises(DetectorError, match="cannot resume with lr"):
+        train_pose(replace(cfg, lr=cfg.lr / 2), labels, out, resume=True, progress=False)
+    train_pose(replace(cfg, cache_mb=0.01, checkpoint_every=7), labels, out, resume=True, progress=False)
+    assert metric_rows(out) == metric_rows(tmp_path / "ref")
+    assert len(metric_rows(out)) == cfg.steps
+    a, b = (read_checkpoint(d / "last.pt")["pose"]["model_state"] for d in (tmp_path / "ref", out))
+    assert all(torch.equal(a[k], b[k]) for k in a)
 
 
 class TrueCropNet(torch.nn.Module):
@@ -554,10 +634,9 @@ def busiest_frame(lf):
     return tab, ObjectInfo.from_table(tab), [int(i) for i in tab.ids], f
 
 
-def test_third_crop_only_where_the_second_still_moved(labels):
-    """recentre 2 cuts a third crop; with recentre_min_shift only around the centres that the second crop still
-    moved by more than that share of the diameter. On true labels the second crop's pose is exact, so no crop
-    moves and the third pass is skipped, with the same poses."""
+def test_each_recentre_cuts_every_crop_again(labels):
+    """recentre N cuts each crop N more times around its latest pose's centre. On true labels the second crop's
+    pose is already exact, so a third crop gives the same poses."""
     from detector.infer import CropPoseConfig, CropPoser
 
     cfg = CropConfig(num_points=256)
@@ -573,16 +652,15 @@ def test_third_crop_only_where_the_second_still_moved(labels):
             dets.append(centre_detection(objs, int(inst.obj_id[g]), c))
         assert len(dets) >= 2
         crops, poses = {}, {}
-        for shift in (0.0, 0.04):
+        for recentre in (1, 2):
             net = TrueCropNet(f, tab, ids, cfg)
             seen = []
             net.register_forward_hook(lambda mod, args, out: seen.append(len(args[1])))
-            poser = CropPoser(net, ids, objs, cfg, NORMALISATION, CropPoseConfig(recentre=2, recentre_min_shift=shift))
+            poser = CropPoser(net, ids, objs, cfg, NORMALISATION, CropPoseConfig(recentre=recentre))
             out = poser(dets, f.features)
-            crops[shift], poses[shift] = seen, [(d.R, d.t) for d in out]
-    assert crops[0.0] == [len(dets)] * 3  # every crop three times
-    assert crops[0.04] == [len(dets)] * 2  # the settled ones not a third time
-    for (R0, t0), (R1, t1) in zip(poses[0.0], poses[0.04]):
+            crops[recentre], poses[recentre] = seen, [(d.R, d.t) for d in out]
+    assert crops[1] == [len(dets)] * 2 and crops[2] == [len(dets)] * 3
+    for (R0, t0), (R1, t1) in zip(poses[1], poses[2]):
         assert np.abs(t0 - t1).max() < 2e-3 and np.abs(R0 - R1).max() < 0.05
 
 

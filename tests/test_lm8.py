@@ -35,7 +35,7 @@ def test_shipped_model_finds_most_linemod_instances(lm_models, tmp_path):
                            cfg=LabelConfig()))
     ck = load_checkpoint(CKPT)
     objects = checkpoint_objects(ck)[0]
-    cfg = checkpoint_pose_config(ck, None, 0.02, True)
+    cfg = checkpoint_pose_config(ck, None, True)
     s = evaluate(network_predictor(ck), tmp_path / "l.h5", tmp_path / "rep", icp=True, cfg=cfg,
                  poser=checkpoint_poser(ck, objects))
     errs = np.array([r["icp"] / r["diameter"] for r in s["instances"]])

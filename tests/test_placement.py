@@ -61,3 +61,27 @@ def test_impossible_placement_is_reported_not_looped():
     placed, failed = place_instances(choose_instances(objs, cfg, np.random.default_rng(0)), cfg, 0.12,
                                      np.random.default_rng(0))
     assert len(placed) + len(failed) == 3 and len(failed) >= 2
+
+
+def test_uniform_poses_mix_draws_every_resting_pose_alike():
+    from argen.sim.placement import pose_weights
+
+    probs = np.array([0.6, 0.3, 0.1])
+    assert np.allclose(pose_weights(probs, 0.0), probs)
+    assert np.allclose(pose_weights(probs, 1.0), 1 / 3)
+    assert np.allclose(pose_weights(probs, 0.5), 0.5 * probs + 0.5 / 3)
+    # placement follows it: with uniform 1 the drill's least likely resting poses are drawn about as often as the
+    # most likely (the third row of R, its up direction in the object frame, is unchanged by the yaw)
+    from argen.sim.placement import resting_transform
+
+    objs = builtin_objects(["drill"])
+    cfg = PlacementConfig(objects_per_frame=(1, 1), stable_poses=4, uniform_poses=1.0)
+    _, p = objs[0].stable_poses(4)
+    ups = np.array([resting_transform(objs[0], k, 4)[2, :3] for k in range(len(p))])
+    rng = np.random.default_rng(3)
+    counts = np.zeros(len(p))
+    for _ in range(200):
+        (pl,), _ = place_instances(objs, cfg, 0.3, rng)
+        counts[np.argmin(np.linalg.norm(ups - pl.T_world_obj[2, :3], axis=1))] += 1
+    assert p.min() < 0.6 * p.max()  # physics alone would draw them unevenly
+    assert counts.min() > 200 / len(p) * 0.6, counts

@@ -32,6 +32,8 @@ def capture_sim(
                                         "(default: the template's)"),
     sensor: Optional[str] = typer.Option(None, "--sensor", help="sensor profile: kinect_v1 (default), kinect_v2 "
                                          "(time of flight), realsense_d435 (active stereo)"),
+    camera: Optional[Path] = typer.Option(None, "--camera", help="a BOP camera.json (fx, fy, cx, cy, width, height): "
+                                          "your sensor's intrinsics and image size, over the sensor profile's"),
     workers: int = typer.Option(1, "--workers", help="processes, each with its own renderer"),
     overwrite: bool = typer.Option(False, "--overwrite", help="replace an output folder made with other options"),
     sets: list[str] = typer.Option([], "--set", help="override any template key, e.g. --set camera.distance=[0.5,1.0]"),
@@ -48,7 +50,7 @@ def capture_sim(
         raise ArgenError(f"--frames must be at least 1, got {frames}")
     if workers < 1:
         raise ArgenError(f"--workers must be at least 1, got {workers}")
-    cfg = load_config(scene, seed, noise, sets, objects, sensor)
+    cfg = load_config(scene, seed, noise, sets, objects, sensor, camera)
     objs, notes = load_any_models(models, cfg.objects or None)
     for line in notes:
         typer.echo(line, err=True)

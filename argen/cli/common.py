@@ -5,10 +5,12 @@ parsing and the placement check."""
 from __future__ import annotations
 
 import functools
+from pathlib import Path
 from typing import Optional
 
 import typer
 
+from argen.bop import load_camera
 from argen.config import load_template, override
 from argen.errors import ArgenError
 from argen.settings import parse_sets
@@ -21,7 +23,8 @@ def fail(msg: str) -> None:
 
 
 def user_errors(fn):
-    """Turn ArgenError (and a few OS-level user errors) into one line on stderr and exit 2."""
+    """Turn ArgenError, and an OSError on a path the user gave or that lies under it (a folder that cannot be made,
+    a file that is a folder, no permission), into one line on stderr and exit 2."""
 
     @functools.wraps(fn)
     def wrapper(*args, **kwargs):
@@ -29,6 +32,10 @@ def user_errors(fn):
             return fn(*args, **kwargs)
         except ArgenError as exc:
             fail(str(exc))
+        except OSError as exc:
+            if exc.filename is None or not exc.strerror:
+                raise
+            fail(f"cannot use {exc.filename}: {exc.strerror[0].lower()}{exc.strerror[1:]}")
         except KeyboardInterrupt:
             typer.echo("argen: interrupted; run the same command again to resume", err=True)
             raise typer.Exit(130)
@@ -37,9 +44,12 @@ def user_errors(fn):
 
 
 def load_config(scene: str, seed: Optional[int], noise: Optional[str], sets: list[str], objects: Optional[str],
-                sensor: Optional[str] = None):
+                sensor: Optional[str] = None, camera: Optional[Path] = None):
+    """The template with the CLI's options applied: the camera file's intrinsics and size (``--camera``, a BOP
+    camera.json) over the sensor profile's, then seed, noise, objects and ``--set`` keys."""
     cfg = load_template(scene, sensor=sensor)
-    dotted = parse_sets(sets)  # the --set syntax of both command lines (argen.settings)
+    dotted = camera_keys(camera) if camera is not None else {}
+    dotted.update(parse_sets(sets))  # the --set syntax of both command lines (argen.settings)
     if seed is not None:
         dotted["seed"] = seed
     if noise is not None:
@@ -51,6 +61,16 @@ def load_config(scene: str, seed: Optional[int], noise: Optional[str], sets: lis
         if not dotted["objects"]:
             raise ArgenError("--objects names no object")
     return override(cfg, dotted) if dotted else cfg
+
+
+def camera_keys(path: Path) -> dict:
+    """Template keys for a BOP ``camera.json``'s intrinsics and image size: {"camera.fx": ..., "camera.width": ...}."""
+    cam = load_camera(path)
+    if cam.width is None or cam.height is None:
+        raise ArgenError(f"{path}: --camera needs the image size (width and height) in the camera file")
+    K = cam.K
+    return {"camera.width": int(cam.width), "camera.height": int(cam.height), "camera.fx": float(K[0, 0]),
+            "camera.fy": float(K[1, 1]), "camera.cx": float(K[0, 2]), "camera.cy": float(K[1, 2])}
 
 
 #: --noise values: the sensor profile's noise on ("kinect", its old name, kept), or none.

@@ -36,6 +36,7 @@ from argen.models.objects import ObjectModel, write_models, write_models_eval
 from argen.sim.ar import estimate_board_pose, pose_error
 from argen.sim.board import Board
 from argen.sim.camera import intrinsics, sample_view
+from argen.sim.colour import apply_colour
 from argen.sim.noise import apply_noise
 from argen.sim.render import get_renderer
 from argen.sim.scene import build_scene
@@ -110,7 +111,7 @@ class FrameMaker:
     def simulate(self, index: int) -> tuple[dict, dict]:
         """Simulate frame ``index``: returns (arrays, metadata). Arrays are empty for a rejected frame."""
         cfg, K = self.cfg, self.K_sim
-        _, _, rng_noise, _ = frame_rngs(cfg.seed, index)
+        _, _, rng_noise, rng_colour = frame_rngs(cfg.seed, index)
         timing = {}
         scene, T_true, view, bg = self.background(index, timing)
         t2 = time.perf_counter()
@@ -125,6 +126,9 @@ class FrameMaker:
             return {}, {"log": log, "timing": timing}
         T_est = est.T_cam_board  # board frame = world frame
         arrays = self.insert(scene, T_est, bg.rgb, bg.depth, rng_noise, timing)
+        arrays["rgb"], drawn = apply_colour(arrays["rgb"], cfg.colour, rng_colour)  # the colour camera's artefacts
+        if drawn:
+            log["colour"] = drawn
         return arrays, {"log": log, "timing": timing, "T_est": T_est}
 
     def insert(self, scene, T_est: np.ndarray, rgb: np.ndarray, depth: np.ndarray, rng_noise: np.random.Generator,

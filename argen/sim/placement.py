@@ -51,6 +51,18 @@ def separation(a: np.ndarray, b: np.ndarray) -> float:
     return best
 
 
+def beside(other: np.ndarray, footprint: np.ndarray, direction: np.ndarray, gap: float) -> np.ndarray:
+    """(2,) shift that puts ``footprint`` next to ``other`` along ``direction``, ``gap`` metres apart.
+
+    other, footprint: (K,2), (L,2) convex polygons, metres; direction: (2,) unit vector from ``other``'s centroid.
+    After the shift their projections on ``direction`` are exactly ``gap`` apart, so for gap > 0 they do not
+    overlap; ``footprint`` is centred on ``other``'s centroid line along ``direction``.
+    """
+    c = other.mean(axis=0)
+    reach = (other @ direction).max() - c @ direction - (footprint @ direction).min() + gap
+    return c + direction * reach - footprint.mean(axis=0) + (footprint.mean(axis=0) @ direction) * direction
+
+
 def resting_transform(obj: ObjectModel, pose_index: int, n_poses: int) -> np.ndarray:
     """(4,4) transform that puts ``obj`` in its resting pose: lowest point at z=0, footprint centred."""
     key = ("rest", pose_index, n_poses)
@@ -75,6 +87,14 @@ def footprint_of(obj: ObjectModel, T_world_obj: np.ndarray) -> np.ndarray:
     """(K,2) convex footprint of ``obj`` under ``T_world_obj`` on the board plane, metres."""
     v = obj.hull_vertices @ T_world_obj[:3, :3].T + T_world_obj[:3, 3]
     return convex_hull_2d(v[:, :2])
+
+
+def pose_weights(probs: np.ndarray, uniform: float) -> np.ndarray:
+    """(P,) probabilities of drawing each resting pose: the physical ones ``probs`` (P,) mixed with a uniform
+    share ``uniform`` in [0, 1] (0: physics only; 1: every pose alike)."""
+    probs = np.asarray(probs, np.float64)
+    w = (1.0 - uniform) * probs / probs.sum() + uniform / len(probs)
+    return w / w.sum()
 
 
 def choose_instances(objects: list[ObjectModel], cfg: PlacementConfig, rng: np.random.Generator) -> list[ObjectModel]:
@@ -106,13 +126,20 @@ def place_instances(
     taken = list(obstacles or [])
     for obj in instances:
         _, probs = obj.stable_poses(cfg.stable_poses)
+        probs = pose_weights(probs, cfg.uniform_poses)
         ok = False
         for _ in range(cfg.max_tries):
             pose_idx = int(rng.choice(len(probs), p=probs))
             T_rest = resting_transform(obj, pose_idx, cfg.stable_poses)
             yaw = rng.uniform(0.0, 2 * np.pi)
-            xy = rng.uniform(-half_extent, half_extent, size=2)
             T = _rz(yaw) @ T_rest
+            if placed and rng.random() < cfg.beside:
+                a = rng.uniform(0.0, 2 * np.pi)
+                other = placed[int(rng.integers(len(placed)))].footprint
+                xy = beside(other, footprint_of(obj, T), np.array([np.cos(a), np.sin(a)]),
+                            cfg.min_gap + 0.001 + rng.uniform(0.0, 0.02))
+            else:
+                xy = rng.uniform(-half_extent, half_extent, size=2)
             T[:2, 3] += xy
             fp = footprint_of(obj, T)
             if fp.min() < -half_extent or fp.max() > half_extent:

@@ -11,13 +11,16 @@ import typer
 from detector.cli.eval import register as register_eval
 from detector.cli.train import register as register_train
 
-app = typer.Typer(add_completion=False, no_args_is_help=True, pretty_exceptions_enable=False,
-                  help="detector: a multi-task PointNet++ for 6-DoF pose from depth (train, eval, predict).")
+HELP = ("detector: 6-DoF object poses from depth (train, eval, predict). The default model has two stages: a "
+        "PointNet++ finds the objects and their centres, a crop network their poses; --preset cpu or paper trains "
+        "the paper's single multi-task PointNet++ instead.")
+
+app = typer.Typer(add_completion=False, no_args_is_help=True, pretty_exceptions_enable=False, help=HELP)
 
 
-@app.callback()
+@app.callback(help=HELP)
 def root() -> None:
-    """detector: a multi-task PointNet++ for 6-DoF pose from depth (train, eval, predict)."""
+    """The ``detector`` command group (its help is :data:`HELP`)."""
 
 
 for _register in (register_train, register_eval):

@@ -8,6 +8,7 @@ from typing import Optional
 import typer
 
 from detector.cli.common import user_errors
+from detector.errors import DetectorError
 
 
 def register(app: typer.Typer) -> None:
@@ -22,7 +23,6 @@ def register(app: typer.Typer) -> None:
         icp: bool = typer.Option(False, "--icp", help="Also refine with ICP (Table II 'with refinement')."),
         tau: Optional[float] = typer.Option(None, "--tau", help="Confidence threshold (default: the model's own, "
                                                                 "else the paper's 0.8)."),
-        cell: float = typer.Option(0.02, "--cell", help="Voting voxel size, metres."),
         min_score: Optional[float] = typer.Option(None, "--min-score",
                                                   help="Drop detections scoring less (default: the model's own)."),
         min_visib: float = typer.Option(0.1, "--min-visib", help="Ignore instances less visible than this."),
@@ -46,15 +46,23 @@ def register(app: typer.Typer) -> None:
         from detector.checkpoint import load_checkpoint
         from detector.data import open_label_file
         from detector.evaluate import evaluate
-        from detector.infer import checkpoint_objects, checkpoint_pose_config, checkpoint_poser, network_predictor
+        from detector.infer import (check_label_objects, checkpoint_objects, checkpoint_pose_config, checkpoint_poser,
+                                    network_predictor)
 
+        if frames is not None and frames < 1:
+            raise DetectorError(f"--frames must be at least 1, got {frames}")
+        if not 0 <= min_visib <= 1:
+            raise DetectorError(f"--min-visib is a visible fraction in [0, 1], got {min_visib}")
         ckpt = load_checkpoint(checkpoint, device)
-        cfg = checkpoint_pose_config(ckpt, tau, cell, icp, min_score)
+        cfg = checkpoint_pose_config(ckpt, tau, icp, min_score)
         with open_label_file(data) as lf:
             n = lf.num_frames
+            if n == 0:
+                raise DetectorError(f"{data} holds no frames")
+            check_label_objects(ckpt, lf.objects)
         poser = checkpoint_poser(ckpt, checkpoint_objects(ckpt)[0], device, seed)
         s = evaluate(network_predictor(ckpt, seed), data, out, icp=icp, cfg=cfg, device=device,
-                     frames=list(range(min(n, frames) if frames else n)), min_visib=min_visib, progress=not quiet,
+                     frames=list(range(min(n, frames or n))), min_visib=min_visib, progress=not quiet,
                      poser=poser, method=method, dataset_name=dataset_name, bop_dataset=bop_dataset)
         key = "icp" if icp else "noicp"
         b = s["bop19"]
@@ -78,7 +86,6 @@ def register(app: typer.Typer) -> None:
         icp: bool = typer.Option(False, "--icp", help="Refine with ICP."),
         tau: Optional[float] = typer.Option(None, "--tau", help="Confidence threshold (default: the model's own, "
                                                                 "else the paper's 0.8)."),
-        cell: float = typer.Option(0.02, "--cell", help="Voting voxel size, metres."),
         min_score: Optional[float] = typer.Option(None, "--min-score",
                                                   help="Drop detections scoring less (default: the model's own)."),
         device: str = typer.Option("cpu", "--device", help="torch device."),
@@ -91,7 +98,7 @@ def register(app: typer.Typer) -> None:
         from detector.predict import load_input, predict
 
         ckpt = load_checkpoint(checkpoint, device)
-        cfg = checkpoint_pose_config(ckpt, tau, cell, icp, min_score)
+        cfg = checkpoint_pose_config(ckpt, tau, icp, min_score)
         inp = load_input(input, K=K, depth_scale=depth_scale, camera=camera, rgb=rgb, seed=seed)
         objects, names = checkpoint_objects(ckpt)
         res = predict(network_predictor(ckpt, seed), inp, objects, out, cfg, names,

@@ -58,7 +58,7 @@ def curve_points(run: Path, labels: Path, frames: int | None, stage1_minutes: fl
                                   {**part, "infer_config": model["pose"]["infer_config"]}, model["extra"])
             ckpt = load_checkpoint(path)
             s = evaluate(network_predictor(ckpt), labels, Path(tmp) / "report", icp=True,
-                         cfg=checkpoint_pose_config(ckpt, None, 0.02, True), frames=list(range(n)),
+                         cfg=checkpoint_pose_config(ckpt, None, True), frames=list(range(n)),
                          poser=checkpoint_poser(ckpt, checkpoint_objects(ckpt)[0]), bop19=False)  # ADD only
             minutes = (stage1 + train_seconds(run / "pose" / "metrics.csv", int(part["step"]))) / 60.0
             points.append({"step": int(part["step"]), "minutes": round(minutes, 2),
