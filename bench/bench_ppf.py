@@ -64,6 +64,7 @@ from argen.errors import ArgenError
 from argen.features import frame_points
 from argen.label import default_max_depth, load_label_objects, object_table
 from detector.errors import DetectorError
+from detector.evaluate import bop19_summary
 from detector.metrics import accuracy, match_frame, pose_error
 from detector.report import bop_csv_name, bop_row, default_dataset_name, json_safe, write_bop_csv
 
@@ -280,6 +281,10 @@ def _pct(v) -> str:
     return "-" if v is None or not np.isfinite(v) else f"{100 * v:.1f}"
 
 
+def _ar(v) -> str:
+    return "–" if v is None else f"{v:.3f}"
+
+
 def read_ours(path: Path) -> dict:
     """A ``detector eval`` report.json: {"objects": {obj_id: (ADD@10 % w/o, with ICP)}, "frame_ms": total ms}."""
     try:
@@ -295,9 +300,12 @@ def read_ours(path: Path) -> dict:
 def table(summary: dict, keys: tuple, ours: dict | None) -> str:
     """The per-object Markdown table (and ours beside it when given)."""
     last = keys[-1]
+    bop19 = summary.get("bop19", {}).get(last, {})
+    ar_of = {int(k): v["ar"] for k, v in bop19.get("objects", {}).items()}
     head = ("| object | inst. | PPF w/o ICP | PPF + ICP | ADD-S for all, "
-            f"{'+ ICP' if last == 'icp' else 'w/o ICP'} | match ms/frame | ICP ms/frame | train s |")
-    rule = "|---|---:|---:|---:|---:|---:|---:|---:|"
+            f"{'+ ICP' if last == 'icp' else 'w/o ICP'} | BOP19 AR, {'+ ICP' if last == 'icp' else 'w/o ICP'} | "
+            "match ms/frame | ICP ms/frame | train s |")
+    rule = "|---|---:|---:|---:|---:|---:|---:|---:|---:|"
     if ours:
         head += " ours w/o ICP | ours + ICP |"
         rule += "---:|---:|"
@@ -305,7 +313,7 @@ def table(summary: dict, keys: tuple, ours: dict | None) -> str:
     for o in summary["objects"]:
         row = (f"| {o['obj_id']} {o['name']}{'*' if o['symmetric'] else ''} | {o['instances']} | "
                f"{_pct(o['add_10']['noicp'])} | {_pct(o['add_10'].get('icp'))} | {_pct(o['adds_10'][last])} | "
-               f"{o['match_ms']:.0f} | {o['icp_ms']:.0f} | {o['train_s']:.1f} |")
+               f"{_ar(ar_of.get(o['obj_id']))} | {o['match_ms']:.0f} | {o['icp_ms']:.0f} | {o['train_s']:.1f} |")
         if ours:
             a, b = ours["objects"].get(o["obj_id"], (None, None))
             row += f" {_pct(a)} | {_pct(b)} |"
@@ -313,7 +321,7 @@ def table(summary: dict, keys: tuple, ours: dict | None) -> str:
     a, fm = summary["all"], summary["frame_ms"]
     icp_ms = fm["icp"] - fm["noicp"] if "icp" in fm else 0.0
     row = (f"| **all** | {a['instances']} | {_pct(a['add_10']['noicp'])} | {_pct(a['add_10'].get('icp'))} | "
-           f"{_pct(a['adds_10'][last])} | {fm['noicp']:.0f} a frame | {icp_ms:.0f} a frame | |")
+           f"{_pct(a['adds_10'][last])} | {_ar(bop19.get('bop19_average_recall'))} | {fm['noicp']:.0f} a frame | {icp_ms:.0f} a frame | |")
     if ours:
         row += f" {ours['frame_ms']:.0f} ms a frame | |"
     lines.append(row)
@@ -386,7 +394,16 @@ def run(args: argparse.Namespace) -> dict:
     keys = ("noicp",) if args.no_icp else ("noicp", "icp")
     inst_rows, obj_rows, bop_rows = run_frames(root, args.split, scene, im_ids, runs, s, max_depth, not args.no_icp)
     summary = summarise(runs, inst_rows, obj_rows, keys)
+    argen_json = (root / "argen.json").read_text() if (root / "argen.json").is_file() else ""
+    images = {(scene_id, i) for i in im_ids}
+    summary["bop19"] = {k: bop19_summary(bop_rows[k], images, root, args.split, argen_json) for k in keys}
     print(table(summary, keys, ours), flush=True)
+    for k in keys:
+        b = summary["bop19"][k]
+        print(f"BOP19 AR {'with' if k == 'icp' else 'without'} ICP: " + (
+            f"{b['bop19_average_recall']:.3f} (VSD {b['bop19_average_recall_vsd']:.3f}, MSSD "
+            f"{b['bop19_average_recall_mssd']:.3f}, MSPD {b['bop19_average_recall_mspd']:.3f})"
+            if "skipped" not in b else f"not computed: {b['skipped']}"), flush=True)
     print(f"median ms a frame: {summary['frame_ms']['noicp']:.0f} without ICP"
           + (f", {summary['frame_ms']['icp']:.0f} with ICP" if "icp" in keys else "")
           + f" (scene cloud {summary['cloud_ms']:.0f}); ADD(-S)@10 %, * = symmetric (ADD-S)", flush=True)
