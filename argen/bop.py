@@ -148,6 +148,26 @@ def parse_symmetries(entry: dict, where: str) -> tuple[list[np.ndarray], list[di
         raise ArgenError(f"{where}: malformed symmetries ({exc.__class__.__name__}: {exc})") from exc
 
 
+def symmetry_transforms(info: ModelInfo, steps: int) -> np.ndarray:
+    """All symmetry transforms of an object, identity first, built as the BOP toolkit builds them
+    (``misc.get_symmetry_transformations``): the identity and the discrete symmetries, each combined with every
+    rotation of the discretised continuous symmetries (``steps`` rotations about each axis through its offset,
+    the axes' rotations listed one after the other). Returns (S,4,4) float64 (model frame, translation metres)
+    that map a model point x to R x + t, the same surface seen at the same pose."""
+    disc = [np.eye(4)] + [np.asarray(T, float) for T in info.symmetries_discrete]
+    conts = []
+    for s in info.symmetries_continuous:
+        axis = np.asarray(s["axis"], float)
+        axis = axis / np.linalg.norm(axis)
+        off = np.asarray(s["offset"], float)
+        for k in range(steps):
+            T = np.eye(4)
+            T[:3, :3] = cv2.Rodrigues(axis * (2 * np.pi * k / steps))[0]
+            T[:3, 3] = off - T[:3, :3] @ off
+            conts.append(T)
+    return np.stack([c @ d for d in disc for c in (conts or [np.eye(4)])])
+
+
 def read_models_info(path: str | os.PathLike) -> dict[int, ModelInfo]:
     """Read ``models_info.json`` into ``{obj_id: ModelInfo}`` in metres."""
     return parse_models_info(read_json(path, "models_info.json"), where=str(path))

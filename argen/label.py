@@ -121,28 +121,6 @@ def sample_surface(vertices: np.ndarray, faces: np.ndarray, n: int, rng: np.rand
     return t[:, 0] + a[:, None] * (t[:, 1] - t[:, 0]) + b[:, None] * (t[:, 2] - t[:, 0])
 
 
-def symmetry_transforms(info: bop.ModelInfo, steps: int = CONTINUOUS_STEPS) -> np.ndarray:
-    """All symmetry transforms of an object, identity first (as the BOP toolkit builds them).
-
-    Discrete symmetries (and the identity) combined with each continuous symmetry discretised into
-    ``steps`` rotations about its axis through its offset. Returns (S,4,4) float64, translation metres.
-    """
-    disc = [np.eye(4)] + [np.asarray(T, float) for T in info.symmetries_discrete]
-    conts = [np.eye(4)]
-    for s in info.symmetries_continuous[:1]:  # BOP models have at most one continuous axis
-        axis = np.asarray(s["axis"], float)
-        axis = axis / np.linalg.norm(axis)
-        off = np.asarray(s["offset"], float)
-        conts = []
-        for k in range(steps):
-            R, _ = cv2.Rodrigues(axis * (2 * np.pi * k / steps))
-            T = np.eye(4)
-            T[:3, :3] = R
-            T[:3, 3] = off - R @ off
-            conts.append(T)
-    return np.stack([c @ d for d in disc for c in conts])
-
-
 def object_table(objects: list[ObjectModel], n_points: int = 1000, seed: int = 0) -> ObjectTable:
     """The label file's objects table (sorted by id); model points sampled with a Generator seeded (seed, obj_id)."""
     objects = sorted(objects, key=lambda o: o.obj_id)
@@ -157,7 +135,7 @@ def object_table(objects: list[ObjectModel], n_points: int = 1000, seed: int = 0
         corners=cps[:, :8].astype(np.float32),
         control_points=cps.astype(np.float32),
         model_points=np.stack(pts).astype(np.float32),
-        sym_transforms=[symmetry_transforms(o.info).astype(np.float32) for o in objects],
+        sym_transforms=[bop.symmetry_transforms(o.info, CONTINUOUS_STEPS).astype(np.float32) for o in objects],
     )
 
 

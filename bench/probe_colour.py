@@ -76,7 +76,7 @@ def main() -> None:
             stage2 = poser
         with tempfile.TemporaryDirectory() as out:
             s = evaluate(pred, a.labels, Path(out), icp=True, cfg=cfg, device="cpu", frames=list(range(n)),
-                         progress=False, poser=stage2)
+                         progress=False, poser=stage2, bop19=False)  # ADD and F1 only
         f = s["f1"]["icp"]
         print(f"{name:9s} {a.stage}: ADD(-S)@10 % with ICP {100 * s['mean']['icp']['0.10']:.1f}, without "
               f"{100 * s['mean']['noicp']['0.10']:.1f}; F1@15 % {100 * f['f1']:.1f} (P {100 * f['precision']:.1f} / "

@@ -1,5 +1,6 @@
 """`detector eval`: scoring only. Runs a predictor (:mod:`detector.infer`) over a label file, matches the poses
-to the ground truth (:mod:`detector.metrics`: ADD, ADD-S, F1) and writes the report (:mod:`detector.report`).
+to the ground truth (:mod:`detector.metrics`: ADD, ADD-S, F1), scores the BOP results file on the labelled BOP
+dataset (:mod:`detector.bop_eval`: BOP19 Average Recall) and writes the report (:mod:`detector.report`).
 """
 
 from __future__ import annotations
@@ -12,10 +13,12 @@ import numpy as np
 from tqdm import tqdm
 
 from argen.h5 import LabelFile
+from detector.bop_eval import dataset_pixel_centres, score_bop19, toolkit_dataset_name
+from detector.errors import DetectorError
 from detector.infer import Predictor, estimate
 from detector.metrics import THRESHOLDS, accuracy, accuracy_curve, match_frame, pose_error, prf
 from detector.pose import Detection, ObjectInfo, PoseConfig, icp_counts
-from detector.report import STAGES, bop_csv_name, bop_row, default_dataset_name, write_report
+from detector.report import STAGES, bop_csv_name, bop_row, default_dataset_name, parse_bop_row, write_report
 
 #: The default method name of the BOP results file (``METHOD_DATASET-SPLIT.csv``).
 METHOD = "argen"
@@ -41,25 +44,38 @@ def _summary_for(rows: list[dict], key: str, k_list=THRESHOLDS) -> dict:
 def evaluate(predictor: Predictor, label_path: str | Path, out_dir: str | Path, icp: bool = False,
              cfg: PoseConfig | None = None, frames: list[int] | None = None, min_visib: float = 0.1,
              device: str = "cpu", progress: bool = False, poser=None, method: str = METHOD,
-             dataset_name: str | None = None) -> dict:
+             dataset_name: str | None = None, bop_dataset: str | Path | None = None, bop19: bool = True) -> dict:
     """Evaluate ``predictor`` on a label file and write the report into ``out_dir``.
 
     Ground-truth instances with ``visib_fract < min_visib`` are ignored (neither missed nor matched). poser: a
     two-stage model's stage 2 (see :func:`estimate`). The BOP results file is ``METHOD_DATASET-SPLIT.csv``
-    (:func:`detector.report.bop_csv_name`): ``method``, ``dataset_name`` (default: the label file's source dataset
-    folder name, letters and digits only) and the label file's source split.
+    (:func:`detector.report.bop_csv_name`): ``method``, ``dataset_name`` (default: the BOP toolkit's name for a
+    capture with one of its datasets' objects and image size, :func:`detector.bop_eval.toolkit_dataset_name`, such as
+    ``lmo`` for the 8 LM-O objects, so the toolkit runs on it unmodified; else the label file's source dataset folder
+    name, letters and digits only) and the label file's source split.
+    BOP19 Average Recall (``bop19``): the BOP CSV's poses scored on the BOP dataset the label file was made from
+    (``bop_dataset``, default the label file's source dataset), the targets of the evaluated images only; skipped
+    with the reason in summary["bop19"]["skipped"] when that folder is gone or cannot be scored.
     Returns the summary written to report.json (per-object ADD accuracies at 10/15/30 % without and with ICP,
     F1 at 15 %, mean ms per stage, fps, and with ICP how many detections had their ICP pose accepted, rejected
-    (it did not fit better, so the unrefined pose was kept) or skipped (too few points): "icp_refinement").
+    (it did not fit better, so the unrefined pose was kept) or skipped (too few points): "icp_refinement"; "bop19":
+    the four BOP19 figures, per object, or "skipped").
     """
+    if bop_dataset is not None and not Path(bop_dataset).is_dir():
+        raise DetectorError(f"--bop-dataset {bop_dataset} is not a folder")
     cfg = replace(cfg or PoseConfig(), icp=icp)
     keys = ("noicp", "icp") if icp else ("noicp",)
     gt_rows, bop_rows, counts, times = [], [], {}, []
     icp_status = {"accepted": 0, "rejected": 0, "skipped": 0}
+    images: set[tuple[int, int]] = set()
     with LabelFile(label_path) as lf:
-        csv_name = bop_csv_name(method, dataset_name or default_dataset_name(lf.attrs.get("source_dataset", "")),
-                                str(lf.attrs.get("source_split") or "test"))
+        split = str(lf.attrs.get("source_split") or "test")
+        root = bop_dataset or lf.attrs.get("source_dataset") or None
+        toolkit_name = toolkit_dataset_name(root, split) if root else None
+        csv_name = bop_csv_name(method, dataset_name or toolkit_name or default_dataset_name(
+            lf.attrs.get("source_dataset", "")), split)
         table = lf.objects
+        source = (root, split, str(lf.attrs.get("source_argen_json") or ""))
         objects = ObjectInfo.from_table(table)
         idx = range(lf.num_frames) if frames is None else frames
         it = idx
@@ -101,13 +117,37 @@ def evaluate(predictor: Predictor, label_path: str | Path, out_dir: str | Path, 
                 for k, v in icp_counts(final).items():
                     icp_status[k] += v
             bop_rows += [bop_row(frame.scene_id, frame.im_id, d.obj_id, d.score, d.R, d.t, frame_time) for d in final]
+            images.add((int(frame.scene_id), int(frame.im_id)))
         num_frames = len(idx)
+    scores = bop19_summary(bop_rows, images, *source, progress) if bop19 else {"skipped": "not asked for"}
+    if "skipped" not in scores:  # how the official toolkit can check these figures (report.md says it)
+        scores["toolkit_dataset"] = toolkit_name if csv_name.split("_", 1)[1].startswith(f"{toolkit_name}-") else None
     return _finish(gt_rows, counts, times, table, cfg, keys, icp, str(label_path), num_frames, bop_rows, out_dir,
-                   device, icp_status if icp else None, csv_name)
+                   device, icp_status if icp else None, csv_name, scores)
+
+
+def bop19_summary(bop_rows: list[dict], images: set[tuple[int, int]], root, split: str, argen_json: str = "",
+                  progress: bool = False) -> dict:
+    """BOP19 Average Recall of BOP results rows (:func:`detector.report.bop_row`) on the BOP dataset at ``root``, the
+    targets of ``images`` ((scene_id, im_id)) only: the toolkit's four figures and its average time per image (s; -1
+    without estimates), per object, the dataset, split and pixel-centre convention; {"skipped": reason} when
+    ``root`` is not a folder or cannot be scored (a DetectorError: the ADD report stays)."""
+    if not root or not Path(root).is_dir():
+        return {"skipped": f"the BOP dataset folder {root} is not there (give --bop-dataset)"}
+    rows = [parse_bop_row(r) for r in bop_rows]
+    times = {(r["scene_id"], r["im_id"]): r["time"] for r in rows}
+    try:
+        pc = dataset_pixel_centres(argen_json)
+        res = score_bop19(root, split, rows, images, pc, progress)
+    except DetectorError as exc:
+        return {"skipped": str(exc)}
+    res.pop("errors")
+    res["bop19_average_time_per_image"] = float(np.mean(list(times.values()))) if times else -1.0
+    return {**res, "dataset": str(root), "split": split, "pixel_centres": pc}
 
 
 def _finish(gt_rows, counts, times, table, cfg, keys, icp, label_file, num_frames, bop_rows, out_dir, device,
-            icp_status=None, csv_name="argen_argen-test.csv") -> dict:
+            icp_status=None, csv_name="argen_argen-test.csv", bop19=None) -> dict:
     """Aggregate per-instance rows into the summary, write the report files and return the summary."""
     objs, curves = [], {}
     for m, oid in enumerate(table.ids.tolist()):
@@ -141,7 +181,8 @@ def _finish(gt_rows, counts, times, table, cfg, keys, icp, label_file, num_frame
     summary = {"label_file": label_file, "num_frames": num_frames, "icp": icp, "config": asdict(cfg),
                "objects": objs, "mean": mean, "f1": f1, "timing_ms": timing_ms,
                "fps": 1000.0 / timing_ms["total"] if timing_ms["total"] > 0 else float("inf"),
-               "device": device, "bop_csv": csv_name, "icp_refinement": icp_status, "instances": gt_rows,
+               "device": device, "bop_csv": csv_name, "icp_refinement": icp_status,
+               "bop19": bop19 or {"skipped": "not computed"}, "instances": gt_rows,
                "curve": {name: {"k": ks.tolist(), "accuracy": acc.tolist()} for name, (ks, acc) in curves.items()}}
     write_report(Path(out_dir), summary, curves, bop_rows)
     return summary

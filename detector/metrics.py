@@ -3,7 +3,10 @@
 ADD (Hinterstoisser et al.): mean distance of the model points under the true and the estimated pose.
 ADD-S: mean distance to the closest model point (for symmetric objects, eq. 1 of the paper). A pose is
 correct when its error is under k x diameter (k = 0.10 for Table II, 0.10/0.15/0.30 for Table III).
-Multi-instance data (LC-HF): detections matched greedily by score to ground-truth instances at 15 % of the
+Which pose counts for ADD: per object and frame only the k best-scoring detections, k the number of its instances
+that count (BOP19's n_top rule), matched greedily by score; a user reads the top-scoring pose, so a higher-scoring
+pose that is wrong makes the instance wrong even when a lower-scoring detection lies on it.
+Multi-instance data (LC-HF): all detections matched greedily by score to ground-truth instances at 15 % of the
 diameter; precision, recall and F1 over all detections and instances. Metres throughout.
 """
 
@@ -72,14 +75,21 @@ def greedy_match(scores: np.ndarray, error: np.ndarray, limit: np.ndarray | None
     return match
 
 
+def top_k(scores: np.ndarray, k: int) -> np.ndarray:
+    """Indices (min(k, D),) int64 of the k highest of scores (D,), best first; equal scores keep their order (as
+    BOP's toolkit, whose sort is stable)."""
+    return np.argsort(-np.asarray(scores, np.float64), kind="stable")[:max(int(k), 0)].astype(np.int64)
+
+
 @dataclass
 class FrameMatch:
-    """Evaluation of one frame's detections against its ground truth (G instances, D detections).
+    """Evaluation of one object's detections in one frame against its ground truth (G instances, D detections).
 
-    gt_error: (G,) metres, the error of the detection matched to each instance (greedy by score, pairs under
-    ``k_add_limit`` x diameter; inf when none) - used for ADD accuracy and the curve; tp: detections matched
-    to a valid instance under ``k_f1`` x diameter (F1 protocol); num_det: detections counted (those matched
-    to an ignored instance are left out); num_gt: valid instances.
+    gt_error: (G,) metres, the error of the detection matched to each instance: only the k best-scoring detections
+    take part (k = valid instances), matched greedily by score to valid instances, pairs under ``k_add_limit`` x
+    diameter; inf when none (and for invalid instances) - used for ADD accuracy and the curve; tp: detections (all
+    of them) matched to a valid instance under ``k_f1`` x diameter (F1 protocol); num_det: detections counted (those
+    matched to an ignored instance are left out); num_gt: valid instances.
     """
 
     gt_error: np.ndarray
@@ -90,19 +100,24 @@ class FrameMatch:
 
 def match_frame(scores: np.ndarray, error: np.ndarray, diameters: np.ndarray, valid: np.ndarray | None = None,
                 k_f1: float = 0.15, k_add_limit: float = 0.5) -> FrameMatch:
-    """Both protocols for one frame. scores (D,), error (D,G) metres (inf for other objects), diameters (G,) metres;
+    """Both protocols for one object in one frame. scores (D,), error (D,G) metres, diameters (G,) metres;
     valid: (G,) bool instances that count (e.g. visible enough); the others are ignored, as are detections of them.
 
-    With one instance per object (LineMOD) the ADD error is that of the best-scoring detection within
-    ``k_add_limit`` of the diameter (the curve's range), so a far duplicate never takes another instance.
+    ADD: the k = valid.sum() best-scoring detections only (BOP19's n_top rule: what a user would read), each matched
+    greedily by score to the closest free valid instance within ``k_add_limit`` of the diameter (the curve's range).
+    A higher-scoring wrong pose uses up its place, so a lower-scoring right one behind it does not count.
+    F1: every detection, greedy by score at ``k_f1``.
     """
     error = np.asarray(error, np.float64).reshape(len(scores), len(diameters))
+    scores = np.asarray(scores, np.float64)
     diameters = np.asarray(diameters, np.float64)
     valid = np.ones(len(diameters), bool) if valid is None else np.asarray(valid, bool)
-    m = greedy_match(scores, error, k_add_limit * diameters)
+    cols = np.flatnonzero(valid)
+    top = top_k(scores, len(cols))
+    m = greedy_match(scores[top], error[np.ix_(top, cols)], k_add_limit * diameters[cols])
     gt_error = np.full(len(diameters), np.inf)
     hit = m >= 0
-    gt_error[m[hit]] = error[np.flatnonzero(hit), m[hit]]
+    gt_error[cols[m[hit]]] = error[top[hit], cols[m[hit]]]
     f = greedy_match(scores, error, k_f1 * diameters)
     ignored = (f >= 0) & ~valid[np.maximum(f, 0)] if len(valid) else np.zeros(len(f), bool)
     tp = int(((f >= 0) & ~ignored).sum())

@@ -1,5 +1,5 @@
-"""Evaluation report files: report.md (tables laid out like the paper's Tables II and III), report.json,
-curve.png (accuracy against threshold) and the BOP results CSV.
+"""Evaluation report files: report.md (tables laid out like the paper's Tables II and III, and BOP19's Average
+Recall), report.json, curve.png (accuracy against threshold), the BOP results CSV and scores_bop19.json.
 
 The BOP CSV is a BOP boundary: there, and only there, translations are millimetres (BOP convention).
 """
@@ -75,19 +75,29 @@ def write_bop_csv(path: Path, rows: list[dict]) -> Path:
     return path
 
 
+def parse_bop_row(r: dict) -> dict:
+    """One BOP results row as written (:func:`bop_row`) or read from the CSV, parsed: R (3,3) float64, t (3,) metres,
+    ids int, score and time float - exactly the values the file carries."""
+    return {"scene_id": int(r["scene_id"]), "im_id": int(r["im_id"]), "obj_id": int(r["obj_id"]),
+            "score": float(r["score"]), "R": np.array(str(r["R"]).split(), float).reshape(3, 3),
+            "t": np.array(str(r["t"]).split(), float) / 1000.0, "time": float(r["time"])}
+
+
 def read_bop_csv(path: Path) -> list[dict]:
     """Read a BOP results CSV back: R (3,3) float64, t (3,) metres, ids int, score and time float."""
-    out = []
     with Path(path).open() as f:
-        for r in csv.DictReader(f):
-            out.append({"scene_id": int(r["scene_id"]), "im_id": int(r["im_id"]), "obj_id": int(r["obj_id"]),
-                        "score": float(r["score"]), "R": np.array(r["R"].split(), float).reshape(3, 3),
-                        "t": np.array(r["t"].split(), float) / 1000.0, "time": float(r["time"])})
-    return out
+        return [parse_bop_row(r) for r in csv.DictReader(f)]
 
 
 def _pct(v) -> str:
     return "–" if v is None or (isinstance(v, float) and math.isnan(v)) else f"{100 * v:.1f}"
+
+
+def _clustering(cfg: dict) -> str:
+    """How centre votes became instances: density modes (``mode_radius`` > 0) or touching voxels of ``cell``."""
+    if cfg.get("mode_radius", 0) > 0:
+        return f"votes clustered at density modes within {cfg['mode_radius']:g} of the diameter"
+    return f"votes clustered in touching {cfg['cell'] * 100:.1f} cm voxels"
 
 
 def markdown(summary: dict) -> str:
@@ -95,9 +105,11 @@ def markdown(summary: dict) -> str:
     objs = summary["objects"]
     icp = summary["icp"]
     lines = [f"# Evaluation of `{summary['label_file']}`", "",
-             f"{summary['num_frames']} frames, tau {summary['config']['tau']}, voting cell "
-             f"{summary['config']['cell'] * 100:.1f} cm. Metric: ADD (ADD-S for symmetric objects, marked *); "
-             "a pose is correct under the given share of the object diameter.", "",
+             f"{summary['num_frames']} frames, tau {summary['config']['tau']}, {_clustering(summary['config'])}. "
+             "Metric: ADD (ADD-S for symmetric objects, marked *); "
+             "a pose is correct under the given share of the object diameter. Per object and frame only the k "
+             "best-scoring poses count, k its instances, matched greedily by score (BOP19's rule: what a user reads).",
+             "",
              "## ADD accuracy at 10 % of the diameter (Table II layout)", "",
              "| object | instances | w/o refinement | with ICP |", "|---|---:|---:|---:|"]
     for o in objs:
@@ -122,6 +134,7 @@ def markdown(summary: dict) -> str:
     f = summary["f1"][key]
     lines += [f"| **all** | {f['num_det']} | {f['num_gt']} | {_pct(f['precision'])} | {_pct(f['recall'])} | "
               f"**{_pct(f['f1'])}** |", "", f"(poses {'with' if icp else 'without'} ICP)", ""]
+    lines += bop19_markdown(summary)
     r = summary.get("icp_refinement")
     if r:
         n = sum(r.values())
@@ -137,6 +150,40 @@ def markdown(summary: dict) -> str:
               "Files: `report.json` (all numbers), `curve.png` (accuracy against threshold), "
               f"`{summary['bop_csv']}` (BOP results; R row-major, t in millimetres).", ""]
     return "\n".join(lines)
+
+
+def _ar(v) -> str:
+    return "–" if v is None or (isinstance(v, float) and math.isnan(v)) else f"{v:.3f}"
+
+
+def bop19_markdown(summary: dict) -> list[str]:
+    """The report's BOP19 section: per object and over all targets, the recalls of VSD, MSSD and MSPD averaged over
+    their thresholds and their mean, AR (or why they were not computed)."""
+    b = summary.get("bop19") or {"skipped": "not computed"}
+    head = ["## BOP19 Average Recall (the BOP benchmark's score)", ""]
+    if "skipped" in b:
+        return head + [f"Not computed: {b['skipped']}.", ""]
+    names = {int(o["obj_id"]): o["name"] for o in summary["objects"]}
+    lines = head + ["| object | targets | VSD | MSSD | MSPD | AR |", "|---|---:|---:|---:|---:|---:|"]
+    for oid, o in sorted(((int(k), v) for k, v in b["objects"].items())):
+        lines.append(f"| {names.get(oid, oid)} | {o['num_targets']} | {_ar(o['vsd'])} | {_ar(o['mssd'])} | "
+                     f"{_ar(o['mspd'])} | {_ar(o['ar'])} |")
+    lines += [f"| **all** | {b['num_targets']} | {_ar(b['bop19_average_recall_vsd'])} | "
+              f"{_ar(b['bop19_average_recall_mssd'])} | {_ar(b['bop19_average_recall_mspd'])} | "
+              f"**{_ar(b['bop19_average_recall'])}** |", "",
+              f"The poses of `{summary['bop_csv']}` on `{b['dataset']}` ({b['split']}), as BOP's toolkit scores them "
+              f"(`scores_bop19.json` has its keys): targets from {b['targets']}, those of the {b['num_images']} "
+              "evaluated images; per object and image only as many poses as it has targets, best score first, "
+              "matched greedily by score; VSD (delta 15 mm, tau 0.05-0.5 of the diameter), MSSD (0.05-0.5 of the "
+              "diameter) and MSPD (5-50 px x width / 640) recalls averaged over their thresholds; AR is their mean. "
+              "**all** pools the targets, so it is not the mean of the rows.", ""]
+    name = b.get("toolkit_dataset")
+    lines += [f"BOP toolkit check, unmodified: link `{b['dataset']}` as `$BOP_PATH/{name}`, set `BOP_RESULTS_PATH` to "
+              f"this folder and run `scripts/eval_bop19_pose.py --result_filenames {summary['bop_csv']}` (README, "
+              "\"Using argen data with the BOP toolkit\")." if name else
+              "The BOP toolkit needs an entry for this dataset's name before it can score this file (README, \"Using "
+              "argen data with the BOP toolkit\").", ""]
+    return lines
 
 
 def plot_curve(curves: dict[str, tuple[np.ndarray, np.ndarray]], path: Path) -> Path:
@@ -177,13 +224,21 @@ def json_safe(value):
 
 
 def write_report(out_dir: Path, summary: dict, curves: dict, bop_rows: list[dict]) -> dict[str, Path]:
-    """Write report.md, report.json, curve.png and the BOP CSV (``summary['bop_csv']``) into ``out_dir``."""
+    """Write report.md, report.json, curve.png, the BOP CSV (``summary['bop_csv']``) and, when summary["bop19"]
+    holds the scores, scores_bop19.json (the BOP toolkit's keys) into ``out_dir``."""
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     paths = {"md": out_dir / "report.md", "json": out_dir / "report.json", "curve": out_dir / "curve.png",
              "bop": out_dir / summary["bop_csv"]}
     paths["md"].write_text(markdown(summary))
     paths["json"].write_text(json.dumps(json_safe(summary), indent=2, allow_nan=False) + "\n")
+    b = summary.get("bop19") or {}
+    if "skipped" not in b and b:
+        paths["bop19"] = out_dir / "scores_bop19.json"
+        paths["bop19"].write_text(json.dumps(json_safe({k: v for k, v in b.items() if k.startswith("bop19_")}),
+                                             indent=2, allow_nan=False) + "\n")
+    else:  # not scored this time: no figures of an earlier run may stay beside this report
+        (out_dir / "scores_bop19.json").unlink(missing_ok=True)
     plot_curve(curves, paths["curve"])
     write_bop_csv(paths["bop"], bop_rows)
     return paths

@@ -29,15 +29,17 @@ LAYERS = [
     ["argen.label", "argen.validate", "argen.preview", "argen.merge", "argen.realism", "argen.real."],
     ["argen.cli."],
     ["detector.errors"],
-    ["detector.config", "detector.metrics", "detector.ops", "detector.crops", "detector.pose", "detector.distributed"],
-    ["detector.model", "detector.cropnet", "detector.loss", "detector.checkpoint", "detector.data", "detector.report"],
+    ["detector.config", "detector.metrics", "detector.bop19", "detector.ops", "detector.crops", "detector.pose",
+     "detector.distributed"],
+    ["detector.model", "detector.cropnet", "detector.loss", "detector.checkpoint", "detector.data", "detector.report",
+     "detector.bop_eval"],
     ["detector.train", "detector.train_pose", "detector.infer"],
     ["detector.two_stage", "detector.evaluate", "detector.predict"],
     ["detector.cli."],
 ]
-#: The argen modules detector may import (the label file, BOP reading, frame features, the settings loader and the
-#: atomic-write helper).
-ARGEN_PUBLIC = {"argen.h5", "argen.bop", "argen.features", "argen.settings", "argen.fileio"}
+#: The argen modules detector may import (the label file, BOP reading, frame features, the settings loader, the
+#: atomic-write helper, and the one renderer, for BOP19's VSD).
+ARGEN_PUBLIC = {"argen.h5", "argen.bop", "argen.features", "argen.settings", "argen.fileio", "argen.sim.render"}
 
 
 def _modules() -> dict[str, Path]:

@@ -16,7 +16,7 @@ from argen.label import LabelConfig, LabelRequest, run_label
 from detector import model
 from detector.checkpoint import save_checkpoint
 from detector.data import NORMALISATION, object_table_dict
-from detector.evaluate import evaluate
+from detector.evaluate import bop19_summary, evaluate
 from detector.infer import Predictions, oracle_predictor
 from detector.pose import PoseConfig
 from detector.report import read_bop_csv
@@ -66,6 +66,13 @@ def test_oracle_gives_full_add_accuracy(label_file, tmp_path):
     js = json.loads((tmp_path / "report.json").read_text())
     assert js["mean"]["noicp"]["0.10"] == 1.0 and js["mean"]["icp"] is None
     assert (tmp_path / "curve.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    # BOP19 on the labelled dataset: the ground truth scores 1 in every figure, in the toolkit's file too
+    b = json.loads((tmp_path / "scores_bop19.json").read_text())
+    assert set(b) == {"bop19_average_recall", "bop19_average_recall_vsd", "bop19_average_recall_mssd",
+                      "bop19_average_recall_mspd", "bop19_average_time_per_image"}
+    assert all(v == 1.0 for k, v in b.items() if k != "bop19_average_time_per_image")
+    assert s["bop19"]["num_targets"] == len(s["instances"]) and "## BOP19 Average Recall" in md
+    assert js["bop19"]["pixel_centres"] == "integer" and "errors" not in js["bop19"]
 
 
 def test_oracle_with_wrong_offsets_is_scored_as_wrong(label_file, tmp_path):
@@ -248,6 +255,10 @@ def test_cli_eval_and_predict_with_a_random_network(random_checkpoint, dataset, 
         assert np.allclose(row["R"] @ row["R"].T, np.eye(3), atol=1e-5) and np.linalg.det(row["R"]) > 0
         assert row["time"] > 0
     assert (tmp_path / "rep" / "curve.png").is_file() and (tmp_path / "rep" / "report.md").is_file()
+    assert "BOP19 AR: " in r.output and (tmp_path / "rep" / "scores_bop19.json").is_file()
+    r = runner.invoke(app, ["eval", str(random_checkpoint), str(h5), "--out", str(tmp_path / "rep"), "--quiet",
+                            "--bop-dataset", str(tmp_path / "nowhere")])
+    assert r.exit_code == 2 and "--bop-dataset" in r.output and len(r.output.strip().splitlines()) == 1
 
     from argen import bop
 
@@ -362,6 +373,44 @@ def test_oracle_multi_instance_f1_and_a_missed_instance(lchf_file, tmp_path):
     assert f["precision"] == 1.0 and f["recall"] == pytest.approx((n - 2) / n) and f["num_det"] == n - 2
 
 
+def test_a_higher_scoring_far_pose_is_the_answer_for_add_while_f1_counts_every_detection(label_file, tmp_path,
+                                                                                           monkeypatch):
+    """Per frame, the first visible instance gets its true pose (score 0.5) and, scored higher (0.9), a pose 0.8
+    diameters off: ADD takes the top-scoring pose, so that instance is wrong; F1 counts one TP and one FP."""
+    import detector.evaluate as ev
+    from detector.pose import Detection
+
+    with LabelFile(label_file) as lf:
+        dia = {int(o): float(d) for o, d in zip(lf.objects.ids, lf.objects.diameters)}
+
+    def fake_estimate(preds, objects, cfg, timings, cloud, poser, features):
+        inst = fake_estimate.frame.instances
+        valid = np.flatnonzero(inst.visib_fract >= 0.1)
+        dets = [Detection(int(inst.obj_id[g]), 0.5, inst.R[g].astype(float), inst.t[g].astype(float), 1,
+                          np.zeros((9, 3)), np.zeros(0, np.int64)) for g in valid]
+        g = valid[0]
+        far = inst.t[g] + [0.8 * dia[int(inst.obj_id[g])], 0, 0]
+        dets.append(Detection(int(inst.obj_id[g]), 0.9, inst.R[g].astype(float), far, 1, np.zeros((9, 3)),
+                              np.zeros(0, np.int64)))
+        return dets, None
+
+    def predictor(frame):
+        fake_estimate.frame = frame
+        return Predictions(np.zeros((0, 3)), np.zeros((0, 1)), [], np.zeros((0, 9, 3)), np.zeros(0))
+
+    monkeypatch.setattr(ev, "estimate", fake_estimate)
+    s = evaluate(predictor, label_file, tmp_path)
+    rows = s["instances"]
+    frames = sorted({r["frame"] for r in rows})
+    first = [next(r for r in rows if r["frame"] == f) for f in frames]
+    assert all(r["noicp"] == np.inf for r in first)  # the top-scoring pose is 0.8 diameters off
+    assert all(r["noicp"] < 1e-5 for r in rows if r not in first)
+    assert s["mean"]["noicp"]["0.30"] < 1.0
+    f = s["f1"]["noicp"]
+    assert (f["num_det"], f["num_gt"]) == (len(rows) + len(frames), len(rows))
+    assert f["recall"] == 1.0 and f["precision"] == pytest.approx(len(rows) / (len(rows) + len(frames)))
+
+
 def test_a_predictor_that_finds_nothing_scores_zero(label_file, tmp_path):
     base = oracle_predictor()
 
@@ -376,6 +425,20 @@ def test_a_predictor_that_finds_nothing_scores_zero(label_file, tmp_path):
     assert s["f1"]["icp"] == {"precision": 0.0, "recall": 0.0, "f1": 0.0, "num_det": 0, "num_gt": s["f1"]["icp"]["num_gt"]}
     assert (tmp_path / s["bop_csv"]).read_text() == "scene_id,im_id,obj_id,score,R,t,time\n"
     assert json.loads((tmp_path / "report.json").read_text())["instances"][0]["noicp"] is None  # inf -> null
+
+
+def test_bop19_is_skipped_with_its_reason_when_the_dataset_is_gone(label_file, tmp_path):
+    from detector.errors import DetectorError
+
+    (tmp_path / "scores_bop19.json").write_text("{}")  # an earlier run's: must not stay beside this report
+    s = evaluate(oracle_predictor(), label_file, tmp_path, frames=[0], bop_dataset=None, bop19=True)
+    assert "skipped" not in s["bop19"] and s["bop19"]["num_images"] == 1  # the evaluated frame's targets only
+    s = evaluate(oracle_predictor(), label_file, tmp_path, frames=[0], bop19=False)
+    assert "skipped" in s["bop19"] and not (tmp_path / "scores_bop19.json").exists()
+    assert "Not computed" in (tmp_path / "report.md").read_text()
+    with pytest.raises(DetectorError, match="--bop-dataset"):
+        evaluate(oracle_predictor(), label_file, tmp_path, bop_dataset=tmp_path / "nowhere")
+    assert "is not there" in bop19_summary([], set(), tmp_path / "moved away", "train_pbr")["skipped"]
 
 
 def test_bop_results_file_name_round_trip():

@@ -21,7 +21,7 @@ from argen.cli.app import app
 from argen.errors import ArgenError
 from argen.features import grid_normals
 from argen.h5 import LabelFile
-from argen.label import LabelConfig, LabelRequest, object_table, run_label, sample_surface, symmetry_transforms
+from argen.label import LabelConfig, LabelRequest, object_table, run_label, sample_surface
 from argen.models.objects import builtin_objects, load_models
 
 runner = CliRunner()

@@ -7,7 +7,8 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from argen.models.objects import builtin_objects, load_objects
-from detector.metrics import accuracy, accuracy_curve, add, adds, greedy_match, match_frame, pose_error, prf
+from detector.metrics import (accuracy, accuracy_curve, add, adds, greedy_match, match_frame, pose_error, prf,
+                              top_k)
 
 LM = Path(__file__).resolve().parents[2] / "shared/data/lm"
 
@@ -63,7 +64,9 @@ def test_match_frame_f1_counts():
     err = np.array([[0.005, np.inf, 0.3], [0.004, np.inf, 0.3], [np.inf, 0.2, np.inf], [0.3, np.inf, 0.01]])
     m = match_frame(np.array([0.9, 0.8, 0.7, 0.6]), err, np.full(3, 0.1))
     assert m.tp == 2 and m.num_det == 4 and m.num_gt == 3
-    assert m.gt_error.tolist() == [0.005, np.inf, 0.01]  # 0.2 is beyond half the diameter: missed
+    # ADD takes the 3 best-scoring detections only (3 instances): the duplicate uses up a place, 0.2 is beyond half
+    # the diameter, and the right detection of instance 2 is the fourth
+    assert m.gt_error.tolist() == [0.005, np.inf, np.inf]
     r = prf(m.tp, m.num_det, m.num_gt)
     assert r["precision"] == 0.5 and r["recall"] == pytest.approx(2 / 3)
     assert r["f1"] == pytest.approx(2 * 0.5 * (2 / 3) / (0.5 + 2 / 3))
@@ -79,3 +82,24 @@ def test_match_frame_ignores_invalid_instances_and_their_detections():
 def test_match_frame_detections_of_an_object_with_no_instance_in_the_frame():
     m = match_frame(np.array([0.9, 0.5]), np.zeros((2, 0)), np.zeros(0), valid=np.zeros(0, bool))
     assert (m.tp, m.num_det, m.num_gt) == (0, 2, 0) and m.gt_error.shape == (0,)
+
+
+def test_add_counts_the_top_scoring_pose_only_while_f1_keeps_every_detection():
+    """BOP19's n_top rule: per object and frame the k best-scoring poses (k instances) are the answer. A
+    higher-scoring pose 0.8 diameters off makes the instance wrong although a lower-scoring right one lies on it."""
+    dia = np.array([0.1])
+    err = np.array([[0.08], [0.002]])  # detection 0: far off, scored higher; detection 1: right
+    m = match_frame(np.array([0.9, 0.5]), err, dia)
+    assert m.gt_error.tolist() == [np.inf]  # was 0.002: the far one used to be skipped
+    assert (m.tp, m.num_det, m.num_gt) == (1, 2, 1)  # F1 still sees both: one TP, one FP
+    # scored the other way round, the right pose is the answer
+    assert match_frame(np.array([0.5, 0.9]), err, dia).gt_error.tolist() == [0.002]
+    # two instances: the two best detections are matched greedily by score; the third (right on instance 1) is out
+    err2 = np.array([[0.001, 0.2], [0.3, 0.09], [0.5, 0.001]])
+    m2 = match_frame(np.array([0.9, 0.8, 0.1]), err2, np.full(2, 0.2))
+    assert m2.gt_error.tolist() == [0.001, 0.09] and m2.tp == 2 and m2.num_det == 3
+    # k counts the valid instances only; an ignored instance gets no ADD error
+    m3 = match_frame(np.array([0.9, 0.8]), np.array([[0.001, 0.5], [0.5, 0.001]]), np.full(2, 0.1),
+                     valid=np.array([False, True]))
+    assert m3.gt_error.tolist() == [np.inf, np.inf] and (m3.tp, m3.num_det, m3.num_gt) == (1, 1, 1)
+    assert top_k(np.array([0.5, 0.9, 0.5, 0.7]), 3).tolist() == [1, 3, 0]  # ties keep their order (stable)

@@ -30,13 +30,18 @@ def register(app: typer.Typer) -> None:
         method: str = typer.Option("argen", "--method", help="Method name of the BOP results file "
                                                               "METHOD_DATASET-SPLIT.csv (letters and digits)."),
         dataset_name: Optional[str] = typer.Option(None, "--dataset-name",
-                                                   help="Dataset name of the BOP results file (default: the "
-                                                        "label file's dataset folder, letters and digits only)."),
+                                                   help="Dataset name of the BOP results file (default: the BOP "
+                                                        "toolkit's name for a capture of lm / lmo / ycbv objects, "
+                                                        "else the label file's dataset folder, letters and digits "
+                                                        "only)."),
+        bop_dataset: Optional[Path] = typer.Option(None, "--bop-dataset",
+                                                   help="BOP dataset folder the label file was made from, for "
+                                                        "BOP19 AR (default: the one the label file names)."),
         device: str = typer.Option("cpu", "--device", help="torch device, e.g. cpu or cuda."),
         seed: int = typer.Option(0, "--seed", help="Point sampling seed."),
         quiet: bool = typer.Option(False, "--quiet", help="No progress bar."),
     ) -> None:
-        """Evaluate a checkpoint on a label file: ADD/ADD-S accuracy, F1, timings, BOP results CSV."""
+        """Evaluate a checkpoint on a label file: ADD/ADD-S accuracy, F1, BOP19 AR, timings, BOP results CSV."""
         # lazy: torch and open3d load in seconds; `detector --help` and the other commands do not need them
         from detector.checkpoint import load_checkpoint
         from detector.data import open_label_file
@@ -58,10 +63,14 @@ def register(app: typer.Typer) -> None:
         poser = checkpoint_poser(ckpt, checkpoint_objects(ckpt)[0], device, seed)
         s = evaluate(network_predictor(ckpt, seed), data, out, icp=icp, cfg=cfg, device=device,
                      frames=list(range(min(n, frames or n))), min_visib=min_visib, progress=not quiet,
-                     poser=poser, method=method, dataset_name=dataset_name)
+                     poser=poser, method=method, dataset_name=dataset_name, bop_dataset=bop_dataset)
         key = "icp" if icp else "noicp"
-        typer.echo(f"ADD@10%: {100 * s['mean'][key]['0.10']:.1f} %  F1@15%: {100 * s['f1'][key]['f1']:.1f} %  "
+        b = s["bop19"]
+        ar = f"BOP19 AR: {b['bop19_average_recall']:.3f}  " if "skipped" not in b else ""
+        typer.echo(f"ADD@10%: {100 * s['mean'][key]['0.10']:.1f} %  F1@15%: {100 * s['f1'][key]['f1']:.1f} %  {ar}"
                    f"{s['fps']:.2f} frames/s  -> {out / 'report.md'}")
+        if "skipped" in b:
+            typer.echo(f"detector: warning: BOP19 AR not computed: {b['skipped']}", err=True)
 
     @app.command("predict")
     @user_errors

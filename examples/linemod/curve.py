@@ -59,7 +59,7 @@ def curve_points(run: Path, labels: Path, frames: int | None, stage1_minutes: fl
             ckpt = load_checkpoint(path)
             s = evaluate(network_predictor(ckpt), labels, Path(tmp) / "report", icp=True,
                          cfg=checkpoint_pose_config(ckpt, None, True), frames=list(range(n)),
-                         poser=checkpoint_poser(ckpt, checkpoint_objects(ckpt)[0]))
+                         poser=checkpoint_poser(ckpt, checkpoint_objects(ckpt)[0]), bop19=False)  # ADD only
             minutes = (stage1 + train_seconds(run / "pose" / "metrics.csv", int(part["step"]))) / 60.0
             points.append({"step": int(part["step"]), "minutes": round(minutes, 2),
                            "noicp": round(100 * s["mean"]["noicp"]["0.10"], 1),
