@@ -28,10 +28,10 @@ def test_shipped_model_finds_the_objects_in_two_real_frames(ycbv_real, tmp_path)
     ck = load_checkpoint(CKPT)
     objects = checkpoint_objects(ck)[0]
     cfg = checkpoint_pose_config(ck, None, True)
-    s = evaluate(network_predictor(ck), tmp_path / "l.h5", tmp_path / "rep", icp=True, cfg=cfg, frames=[0, 5],
+    s = evaluate(network_predictor(ck), tmp_path / "l.h5", tmp_path / "rep", icp=True, cfg=cfg, frames=[3, 4],
                  min_visib=0.0, poser=checkpoint_poser(ck, objects))
     errs = np.array([r["icp"] / r["diameter"] for r in s["instances"]])
     assert len(errs) == 6
-    # the shipped model gets the gelatin box right in both frames (the mug and the brick not: RESULTS.md); a model
-    # that finds nothing, or finds the objects but not their orientation, gets none
+    # the shipped model gets the gelatin box right in both frames and the foam brick in the second (the mug not:
+    # RESULTS.md); a model that finds nothing, or finds the objects but not their orientation, gets none
     assert np.sum(errs < 0.1) >= 2, np.round(errs, 3)
