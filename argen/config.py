@@ -110,6 +110,27 @@ class ARConfig:
 
 
 @dataclass
+class PlaneConfig:
+    """The support plane of a markerless capture (``argen capture --recording`` without a board, argen.real.support).
+
+    A point lies on the plane when its distance to it is below ``inlier_m + inlier_per_m2 * z^2`` (z: its depth,
+    metres; the depth noise of structured light grows with z^2); anything higher above the plane is real geometry
+    that the objects must keep clear of.
+    """
+
+    support: str = "auto"  # "auto": the board where it is found, else the plane; "board": board only; "plane": plane only
+    inlier_m: float = 0.004  # metres
+    inlier_per_m2: float = 0.0025  # 1/metre: the tolerance's growth with depth squared
+    max_tilt_deg: float = 85.0  # largest angle between the plane normal and the camera's up axis (-y): the camera
+    # looks down at the support by as much (a wall in front of a camera looking down is tilted more than 90)
+    centre: float = 0.35  # the fit uses the pixels within this fraction of the image size around its centre
+    candidates: int = 4  # planes fitted one after another (each without the previous ones' inliers)
+    min_inliers: int = 300  # fewest central inliers of a usable plane (on the fit's 4-pixel grid)
+    cell: float = 0.01  # metres: the grid cell of the plane's extent and the clearance above it
+    clearance: float = 0.005  # metres: gap between a placed object and any real point above the plane
+
+
+@dataclass
 class NoiseConfig:
     """Depth-sensor model (``argen.sim.noise``). The defaults are the plain Kinect v1 model of Nguyen et al. 2012;
     the sensor profiles (``argen/sensors/*.yaml``) switch on and calibrate the other effects."""
@@ -166,6 +187,7 @@ class OutputConfig:
 
 
 NOISE_MODELS = ("structured_light", "tof", "stereo")
+SUPPORTS = ("auto", "board", "plane")  # plane.support values
 
 #: output.pixel_centres values and the offset (pixels) from a file's K to the K that images are made with.
 PIXEL_CENTRES = {"integer": 0.0, "half": -0.5}
@@ -195,6 +217,7 @@ class TemplateConfig:
     clutter: ClutterConfig = field(default_factory=ClutterConfig)
     scene: SceneConfig = field(default_factory=SceneConfig)
     ar: ARConfig = field(default_factory=ARConfig)
+    plane: PlaneConfig = field(default_factory=PlaneConfig)
     noise: NoiseConfig = field(default_factory=NoiseConfig)
     colour: ColourConfig = field(default_factory=ColourConfig)
     output: OutputConfig = field(default_factory=OutputConfig)
@@ -313,6 +336,15 @@ def validate(obj: Any, where: str = "config") -> None:
     elif isinstance(obj, ARConfig):
         _check(obj.min_markers >= 1, where, "ar min_markers must be at least 1")
         _check(obj.max_reproj_px > 0, where, "ar max_reproj_px must be positive")
+    elif isinstance(obj, PlaneConfig):
+        _check(obj.support in SUPPORTS, where, f"plane support must be one of {', '.join(SUPPORTS)}, got '{obj.support}'")
+        _check(obj.inlier_m > 0 and obj.inlier_per_m2 >= 0, where,
+               "plane inlier_m must be positive and inlier_per_m2 non-negative")
+        _check(0 < obj.max_tilt_deg <= 90, where, "plane max_tilt_deg must lie in (0, 90]")
+        _check(0 < obj.centre <= 1, where, "plane centre must lie in (0, 1]")
+        _check(obj.candidates >= 1 and obj.min_inliers >= 3, where,
+               "plane candidates must be at least 1 and min_inliers at least 3")
+        _check(obj.cell > 0 and obj.clearance >= 0, where, "plane cell must be positive and clearance non-negative")
     elif isinstance(obj, NoiseConfig):
         _check(obj.axial_a >= 0 and obj.axial_b >= 0, where, "noise axial terms must be non-negative")
         _check(obj.lateral_px >= 0, where, "noise lateral_px must be non-negative")

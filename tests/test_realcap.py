@@ -25,7 +25,7 @@ from argen.sim.render import RenderOutput
 
 SETS = {"camera.width": 320, "camera.height": 240, "camera.fx": 286.2, "camera.fy": 286.8, "camera.cx": 162.6,
         "camera.cy": 121.0, "camera.distance": [0.5, 0.7], "camera.elevation_deg": [45.0, 85.0],
-        "noise.enabled": False, "seed": 3}
+        "noise.enabled": False, "seed": 3, "plane.support": "board"}
 N = 3  # frames made by both; the recording has one more, with the board hidden
 
 
@@ -84,6 +84,17 @@ def test_hidden_board_is_rejected_and_logged(runs):
     assert not last["accepted"] and "markers" in last["reason"] and last["timestamp"] == pytest.approx(N / 30)
     assert s.rejected >= 1 and N not in _scene(root / "real").im_ids
     assert json.loads((root / "real" / "argen.json").read_text())["kind"] == "capture-real"
+
+
+def test_without_the_board_auto_falls_back_to_the_plane(runs, tmp_path):
+    root, rec, _, cfg, objs = runs
+    write_recording(tmp_path / "rec", rec.K, [rec.read(N)], depth_scale=0.1)  # the frame whose board is hidden
+    auto = override(cfg, {"plane.support": "auto"})
+    s = run_real_capture(CaptureRequest(cfg=auto, objects=objs, out=tmp_path / "o", frames=1, progress=False),
+                         open_recording(tmp_path / "rec"))
+    log = json.loads((tmp_path / "o" / "capture_log.json").read_text())["frames"][0]
+    assert s.written == 1 and log["support"] == "plane" and "markers" in log["board"]
+    assert log["plane"]["tilt_deg"] <= auto.plane.max_tilt_deg
 
 
 def test_rerun_resumes_without_redoing(runs):

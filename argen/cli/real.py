@@ -17,8 +17,9 @@ def register(app: typer.Typer) -> None:
     @app.command("capture")
     @user_errors
     def capture_cmd(
-        recording: Path = typer.Option(..., "--recording", help="recording folder: rgb/, depth/, camera.json "
-                                       "(fx, fy, cx, cy, depth_scale), optional timestamps.txt"),
+        recording: Path = typer.Option(..., "--recording", help="recording: a folder (rgb/ + depth/ + camera.json; "
+                                       "TUM's rgb.txt + depth.txt; or colour and 16-bit depth images + camera.json) "
+                                       "or a ROS 1 .bag (RealSense)"),
         out: Path = typer.Option(..., "--out", help="output BOP dataset folder"),
         models: Optional[Path] = typer.Option(None, "--models", help="BOP models folder (PLY in mm), or a "
                                                "folder of plain meshes (imported on the fly); default: built-in "
@@ -32,6 +33,11 @@ def register(app: typer.Typer) -> None:
                                              "objects (the intrinsics are the recording's)"),
         depth_scale: Optional[float] = typer.Option(None, "--depth-scale", help="mm per depth-PNG unit "
                                                     "(overrides camera.json; 1.0 for RealSense / Azure Kinect)"),
+        camera: Optional[str] = typer.Option(None, "--camera", help="intrinsics: a BOP camera.json, or 'tum' (the "
+                                             "TUM benchmark's default); overrides the recording's"),
+        support: Optional[str] = typer.Option(None, "--support", help="where objects stand: 'auto' (the board where "
+                                              "found, else the dominant horizontal plane), 'board' or 'plane' "
+                                              "(default: the template's plane.support, auto)"),
         occlusion_margin: float = typer.Option(0.003, "--occlusion-margin", help="metres a real surface must be in "
                                                "front of a virtual one to hide it"),
         workers: int = typer.Option(1, "--workers", help="processes, each with its own renderer"),
@@ -39,17 +45,21 @@ def register(app: typer.Typer) -> None:
         sets: list[str] = typer.Option([], "--set", help="override any template key"),
         quiet: bool = typer.Option(False, "--quiet", help="no progress bar"),
     ):
-        """Composite virtual objects into a recorded RGB-D sequence of the printed board; write BOP scenes."""
+        """Composite virtual objects into a recorded RGB-D sequence, on the printed board or, without one, on the
+        dominant horizontal plane; write BOP scenes."""
         # lazy: pyrender, open3d and trimesh take seconds to load; --help and the other commands need none
         from argen.models.meshimport import load_any_models
         from argen.real.capture import run_real_capture
-        from argen.real.recording import open_recording
+        from argen.real.readers import camera_arg, open_any
         from argen.sim.capture import CaptureRequest
 
         if workers < 1:
             raise ArgenError(f"--workers must be at least 1, got {workers}")
-        rec = open_recording(recording, depth_scale)
-        cfg = load_config(scene, seed, noise, sets, objects, sensor)
+        rec = open_any(recording, depth_scale, camera_arg(camera))
+        if rec.camera_source == "default":
+            typer.echo(f"{recording}: no camera.json; using the TUM benchmark's default intrinsics (fx = fy = 525, "
+                       "cx = 319.5, cy = 239.5); pass --camera to change them", err=True)
+        cfg = load_config(scene, seed, noise, sets + ([f"plane.support={support}"] if support else []), objects, sensor)
         objs, notes = load_any_models(models, cfg.objects or None)
         for line in notes:
             typer.echo(line, err=True)

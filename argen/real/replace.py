@@ -40,6 +40,7 @@ from argen.errors import ArgenError
 from argen.fileio import write_json
 from argen.models.meshimport import load_any_models
 from argen.models.objects import ObjectModel, write_models
+from argen.real.support import fit_plane, pixel_rays
 from argen.sim.capture import composite
 from argen.sim.noise import apply_noise
 from argen.sim.render import Light, RenderItem, get_renderer
@@ -88,39 +89,6 @@ def rotated_pose(T_cam_obj: np.ndarray, axis: np.ndarray, centre: np.ndarray, an
     return S @ T_cam_obj
 
 
-def pixel_rays(rows: np.ndarray, cols: np.ndarray, K: np.ndarray) -> np.ndarray:
-    """(N, 3) camera-frame rays with z = 1 of pixels (rows, cols) (N,) int; K: (3, 3)."""
-    return np.stack([(cols - K[0, 2]) / K[0, 0], (rows - K[1, 2]) / K[1, 1], np.ones(len(rows))], axis=1)
-
-
-def fit_plane(points: np.ndarray, rng: np.random.Generator, inlier: float = PLANE_INLIER,
-              iters: int = 200) -> tuple[np.ndarray, float, np.ndarray] | None:
-    """RANSAC + least-squares plane n.x + c = 0 through (N, 3) metres points; n faces the camera (origin).
-
-    Returns (n (3,), c metres, inliers (N,) bool), or None for fewer than 3 points or no plane.
-    """
-    p = np.asarray(points, np.float64)
-    if len(p) < 3:
-        return None
-    tri = p[rng.integers(0, len(p), (iters, 3))]
-    n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
-    norm = np.linalg.norm(n, axis=1)
-    ok = norm > 1e-12
-    if not ok.any():
-        return None
-    n, tri = n[ok] / norm[ok, None], tri[ok]
-    c = -np.einsum("ij,ij->i", n, tri[:, 0])
-    counts = (np.abs(p @ n.T + c) < inlier).sum(axis=0)
-    best = int(np.argmax(counts))
-    inl = np.abs(p @ n[best] + c[best]) < inlier
-    centroid = p[inl].mean(axis=0)
-    normal = np.linalg.svd(p[inl] - centroid, full_matrices=False)[2][-1]
-    if normal @ centroid > 0:  # face the camera at the origin
-        normal = -normal
-    c0 = -float(normal @ centroid)
-    return normal, c0, np.abs(p @ normal + c0) < inlier
-
-
 def _ring(mask: np.ndarray, inner: int, outer: int) -> np.ndarray:
     k = lambda r: cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1))  # noqa: E731
     m = mask.astype(np.uint8)
@@ -143,7 +111,7 @@ def remove_object(rgb: np.ndarray, depth: np.ndarray, K: np.ndarray, obj_depth: 
     removed = grow & (depth > 0) & (depth >= near - REMOVE_TOL)
     ring = _ring(sil, *RING_PX) & (depth > 0) & ~keep_out
     rows, cols = np.nonzero(ring)
-    plane = fit_plane(pixel_rays(rows, cols, K) * depth[rows, cols, None], rng)
+    plane = fit_plane(pixel_rays(rows, cols, K) * depth[rows, cols, None], rng, PLANE_INLIER)
     out = depth.copy()
     rr, cc = np.nonzero(removed)
     out[rr, cc] = 0.0

@@ -195,7 +195,12 @@ class FrameMaker:
 
 def accept(log: dict, est, scene) -> bool:
     """Whether a frame is kept: an accepted board pose and at least one placed object; noted in ``log``."""
-    accepted, reason = est.accepted, est.reason
+    return accept_world(log, est.accepted, est.reason, scene)
+
+
+def accept_world(log: dict, accepted: bool, reason: str, scene) -> bool:
+    """Whether a frame is kept: its world (board or support plane) ``accepted`` (else why not: ``reason``) and at
+    least one object placed in ``scene``; noted in ``log``."""
     if accepted and not scene.placements:
         accepted, reason = False, "no object could be placed"
     log["accepted"], log["reason"] = bool(accepted), reason

@@ -9,6 +9,7 @@ that overlaps is rejected and resampled, at most ``max_tries`` times per instanc
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Callable
 
 import cv2
 import numpy as np
@@ -115,11 +116,14 @@ def place_instances(
     half_extent: float,
     rng: np.random.Generator,
     obstacles: list[np.ndarray] | None = None,
+    fits: Callable[[ObjectModel, np.ndarray, np.ndarray], bool] | None = None,
 ) -> tuple[list[Placement], list[ObjectModel]]:
     """Place each instance inside the square [-half_extent, half_extent]^2 without overlaps.
 
-    obstacles: footprints (K,2) already on the board. Returns the placements and the instances that
-    could not be placed within ``cfg.max_tries`` attempts each.
+    obstacles: footprints (K,2) already on the board. fits(obj, T_world_obj (4,4), footprint (K,2)) -> whether
+    a candidate that passed the other checks may stand there (the real geometry of a markerless capture,
+    argen.real.support); None: every candidate may. Returns the placements and the instances that could not be
+    placed within ``cfg.max_tries`` attempts each.
     """
     placed: list[Placement] = []
     failed: list[ObjectModel] = []
@@ -145,6 +149,8 @@ def place_instances(
             if fp.min() < -half_extent or fp.max() > half_extent:
                 continue
             if any(separation(fp, other) < cfg.min_gap for other in taken):
+                continue
+            if fits is not None and not fits(obj, T, fp):
                 continue
             placed.append(Placement(obj, T, fp))
             taken.append(fp)

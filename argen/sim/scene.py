@@ -227,7 +227,7 @@ def build_scene(cfg: TemplateConfig, objects: list[ObjectModel], board: Board, r
                                                     int(rng.integers(cl.shelf_items[0], cl.shelf_items[1] + 1)), [],
                                                     rng, cl.scale, avoid=avoid):
                 add(lib[i][0], ("distractor", i), lib[i][1], T, "shelf")
-    lights = _lights(cfg, rng)
+    lights = draw_lights(cfg, rng)
     info = {"placed": [p.obj.name for p in placements], "unplaced": [o.name for o in failed],
             "clutter": len(distractors), "distractors": distractors}
     return Scene(items, placements, [o.name for o in failed], lights, float(rng.uniform(*cfg.scene.ambient)), info,
@@ -266,8 +266,8 @@ def _translate(x, y, z) -> np.ndarray:
     return T
 
 
-def _lights(cfg: TemplateConfig, rng: np.random.Generator) -> list[Light]:
-    """A directional 'sun' from a random direction above and point lights above the board, each slightly
+def draw_lights(cfg: TemplateConfig, rng: np.random.Generator) -> list[Light]:
+    """A directional 'sun' from a random direction above and point lights above the board (world z up), each slightly
     warm or cool (``scene.light_tint``)."""
     sc = cfg.scene
     el = rng.uniform(np.deg2rad(35), np.deg2rad(85))
