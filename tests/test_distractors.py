@@ -167,3 +167,25 @@ def test_no_distractor_is_a_lookalike_of_a_target(scenes):
     assert distractors.lookalike(targets[0] * 1.1, targets)
     assert not distractors.lookalike(targets[0] * 1.4, targets)
     assert not distractors.lookalike(targets[0] * [1.0, 1.0, 0.3], targets[:1])
+
+
+def test_caches_never_serve_a_freed_objects_geometry():
+    """Boards and meshes made one after another, each freed before the next (so Python may reuse an address):
+    every board's mesh has its own side and every hull footprint is its own mesh's. Caches keyed by id() failed
+    this and made a capture's bytes depend on what the process had made before."""
+    import gc
+
+    from argen.config import BoardConfig
+    from argen.sim.scene import board_mesh
+
+    for i in range(8):
+        board = Board.from_config(BoardConfig() if i % 2 else BoardConfig(markers_per_side=7, marker_size=0.03,
+                                                                            marker_gap=0.015, margin=0.005))
+        side = board.side
+        assert np.allclose(board_mesh(board).extents[:2], side, atol=1e-6)
+        del board
+        mesh = trimesh.creation.box((0.05 + 0.02 * i, 0.04, 0.03))
+        fp = distractors.hull_footprint(mesh, np.eye(4))
+        assert np.allclose(np.ptp(fp, axis=0), [0.05 + 0.02 * i, 0.04], atol=1e-9)
+        del mesh
+        gc.collect()

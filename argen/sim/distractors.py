@@ -292,10 +292,12 @@ def hull_footprint(mesh: trimesh.Trimesh, T: np.ndarray) -> np.ndarray:
 
 
 def _hull_vertices(mesh: trimesh.Trimesh) -> np.ndarray:
+    """(V,3) convex-hull vertices of ``mesh``, cached per mesh object: the entry keeps the mesh itself, so its id()
+    cannot be reused by another mesh while the entry exists."""
     key = ("hull", id(mesh))
-    if key not in _cache:
-        _cache[key] = np.asarray(mesh.convex_hull.vertices)
-    return _cache[key]
+    if key not in _cache or _cache[key][0] is not mesh:
+        _cache[key] = (mesh, np.asarray(mesh.convex_hull.vertices))
+    return _cache[key][1]
 
 
 def pose(scale: float, yaw: float, xyz) -> np.ndarray:

@@ -88,9 +88,15 @@ def box_pose(centre, extents, R: np.ndarray | None = None) -> np.ndarray:
     return T
 
 
+def board_key(board: Board) -> tuple:
+    """The cache key of ``board``'s mesh (here and in the renderer): its config, all the mesh depends on. Not its
+    id(): a board freed and another made at the same address would get the first one's mesh."""
+    return ("board", repr(board.cfg))
+
+
 def board_mesh(board: Board) -> trimesh.Trimesh:
     """The board as a textured slab, top surface at z=0."""
-    key = ("board", id(board))
+    key = board_key(board)
     if key not in _cache:
         _cache[key] = textured_plane(board.side, board.texture(), thickness=board.cfg.thickness)
     return _cache[key]
@@ -142,7 +148,7 @@ def build_scene(cfg: TemplateConfig, objects: list[ObjectModel], board: Board, r
     half = board.side / 2
     cl = cfg.clutter
     items, room = build_room(cfg, board, rng)
-    items.append(RenderItem(key=("board",), mesh=board_mesh(board), T_world_obj=np.eye(4), seg_id=0))
+    items.append(RenderItem(key=board_key(board), mesh=board_mesh(board), T_world_obj=np.eye(4), seg_id=0))
     board_square = _rect(-half, half, -half, half)
     surfaces = [("board", 0.0, board_square), ("desk", room["desk_z"], room["desk"])]
     if rng.random() < cl.board_cover:  # a magazine, cloth or mat over the free area; the markers stay visible
