@@ -169,9 +169,11 @@ import pickle  # noqa: E402
 import torch  # noqa: E402
 from pykdtree.kdtree import KDTree  # noqa: E402
 
-from detector.data import NORMALISATION, PointDataset, augment, class_index, collate, inference_batch, sample_rows  # noqa: E402
+from detector.data.augment import NORMALISATION, augment  # noqa: E402
+from detector.data.batches import collate
 from detector.errors import DetectorError  # noqa: E402
-from detector.train import make_config  # noqa: E402
+from detector.stage1.dataset import PointDataset, class_index, inference_batch, sample_rows
+from detector.stage1.train import make_config  # noqa: E402
 
 torch.set_num_threads(1)
 NUM_POINTS = 1024
@@ -179,7 +181,7 @@ NUM_POINTS = 1024
 
 def small_model_config():
     """The cpu preset made tiny (TINY_MODEL) for fast tests."""
-    from detector.model import ModelConfig, preset
+    from detector.stage1.network import ModelConfig, preset
 
     return ModelConfig.from_dict({**preset("cpu").to_dict(), **TINY_MODEL})
 
