@@ -45,6 +45,7 @@ from detector.training.checkpoint_file import read_checkpoint, save_checkpoint
 from detector.training.devices import loader_generator, resolve_device, worker_init
 from detector.training.distributed import DistContext
 from detector.training.metrics_log import MetricsLog
+from detector.training.optim import optimiser_step
 from detector.training.resume import restore_state, rng_state, run_checkpoint
 from detector.training.schedule import lr_factor
 
@@ -344,15 +345,9 @@ def _train(cfg: TrainConfig, train_path: str | Path, out_dir: str | Path, val_pa
                 lr = opt.param_groups[0]["lr"]
                 loss, parts = forward_loss(model, batch, seg_cfg if phase == "seg" else cfg.loss, device,
                                            use_indices, ctx)
-                opt.zero_grad(set_to_none=True)
-                loss.backward()
-                if ctx.enabled and phase == "seg":  # as in one process: the unused heads take no AdamW step
-                    for p in seg_unused:
-                        p.grad = None
-                if cfg.grad_clip > 0:
-                    torch.nn.utils.clip_grad_norm_(net.parameters(), cfg.grad_clip)
-                opt.step()
-                sched.step()
+                # as in one process: under DDP the unused heads of segmentation pre-training take no AdamW step
+                frozen = seg_unused if ctx.enabled and phase == "seg" else ()
+                optimiser_step(loss, net, opt, sched, cfg.grad_clip, frozen)
                 step += 1
                 now = time.perf_counter()
                 row = {"step": step, "epoch": step * cfg.batch_size / len(ds), "phase": phase,

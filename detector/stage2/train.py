@@ -27,6 +27,7 @@ from detector.stage2.network import CropNet, CropNetConfig, crop_loss
 from detector.training.checkpoint_file import FORMAT, TWO_STAGE_VERSION, atomic_torch_save, read_checkpoint
 from detector.training.devices import loader_generator, resolve_device, worker_init
 from detector.training.metrics_log import MetricsLog
+from detector.training.optim import optimiser_step
 from detector.training.resume import restore_state, rng_state, run_checkpoint
 from detector.training.schedule import lr_factor
 
@@ -152,12 +153,7 @@ def train_stage2(cfg: Stage2TrainConfig, train_path: str | Path, out_dir: str | 
                 empty = 0
                 lr = opt.param_groups[0]["lr"]
                 loss, parts = forward_stage2_loss(net, batch, cfg, device)
-                opt.zero_grad(set_to_none=True)
-                loss.backward()
-                if cfg.grad_clip > 0:
-                    torch.nn.utils.clip_grad_norm_(net.parameters(), cfg.grad_clip)
-                opt.step()
-                sched.step()
+                optimiser_step(loss, net, opt, sched, cfg.grad_clip)
                 step += 1
                 now = time.perf_counter()
                 row = {"step": step, "epoch": f"{step * cfg.batch_frames / len(ds):.4f}", **parts, "lr": lr,
