@@ -1,4 +1,5 @@
-"""Tests of detector.data: items agree with the label file, augmentation keeps labels consistent, bad files fail clearly.
+"""Tests of detector.data and detector.stage1.dataset: items agree with the label file, augmentation keeps labels
+consistent, bad files fail clearly.
 
 Also home of ``write_synthetic_h5``: a small exact label file (boxes resting on a table, ray cast from a
 pinhole camera) written with h5py following docs/hdf5-schema.md; test_train.py imports it.

@@ -1,4 +1,4 @@
-"""Pose stage: Kabsch, voting, NMS, ICP on exact synthetic data."""
+"""detector.geometry: Kabsch, voting, NMS, ICP on exact synthetic data."""
 
 from dataclasses import replace
 
