@@ -8,7 +8,7 @@ Usage: .venv/bin/python bench/bench_infer.py [--data FILE.h5] [--checkpoint CKPT
 
 Sampling + network: a checkpoint (or a randomly initialised network of each ``--preset``, same cost) on the
 label file's frames (median over frames after one warm-up). A random network's output is noise, so the
-pose stage (voting, Kabsch, ICP) is timed on the file's ground-truth labels instead (``oracle_predictor``
+geometry (voting, Kabsch, ICP) is timed on the file's ground-truth labels instead (``oracle_predictor``
 sampled to the network's point count): realistic instance counts and supports. Without ``--data`` a
 3-frame noise-free capture-sim dataset of the built-in objects is made and labelled in a temporary folder.
 The target is the paper's 6 fps (166 ms per frame), which it reached on a TITAN XP GPU.
@@ -77,7 +77,7 @@ def pose_times(frames: list, objects, num_points: int) -> dict[str, float]:
 
 def two_stage_times(ck, frames: list, device: str) -> dict[str, float]:
     """A two-stage checkpoint end to end on real predictions: median seconds per stage and of the whole frame
-    (sampling, network, voting, stage 2, ICP with the model's own pose settings), and detections per frame."""
+    (sampling, network, voting, stage 2, ICP with the model's own geometry settings), and detections per frame."""
     from detector.infer import checkpoint_geometry_config, checkpoint_objects, checkpoint_poser, estimate
     from detector.stage1.predictor import network_predictor
 

@@ -205,7 +205,7 @@ def detection_json(d: Detection, name: str) -> dict:
 
 def predict(predictor, inp: PointInput, objects: ObjectInfo, out_dir: Path, cfg: GeometryConfig | None = None,
             names: dict[int, str] | None = None, poser=None) -> dict:
-    """Run ``predictor`` (see :mod:`detector.infer`) and the pose stage (with a two-stage model's ``poser``)
+    """Run ``predictor`` (see :mod:`detector.infer`) and the geometry (with a two-stage model's ``poser``)
     on ``inp``; write poses.json and poses.png into ``out_dir``. Returns the JSON content."""
     cfg = cfg or GeometryConfig()
     t0 = time.perf_counter()

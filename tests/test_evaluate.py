@@ -1,4 +1,4 @@
-"""detector eval: the oracle run through the whole pose stage on a real capture-sim + label file; report files."""
+"""detector eval: the oracle run through the whole geometry on a real capture-sim + label file; report files."""
 
 from __future__ import annotations
 

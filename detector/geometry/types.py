@@ -12,7 +12,7 @@ from scipy.spatial import cKDTree
 
 @dataclass
 class GeometryConfig:
-    """Options of the pose stage.
+    """Options of the geometry: voting, Kabsch, ICP, scores and thresholds.
 
     tau: confidence threshold; cell: voting voxel size, metres; min_votes: fewest votes an instance needs;
     mode_radius: > 0 clusters the centre votes around their density modes within this fraction of the diameter
@@ -118,7 +118,7 @@ def make_model_cloud(model_points: np.ndarray):
 
 @dataclass
 class ObjectInfo:
-    """What the pose stage needs of each object, by obj_id.
+    """What the geometry needs of each object, by obj_id.
 
     control_points: {obj_id: (9,3) metres model frame}; diameters: {obj_id: metres};
     model_points: {obj_id: (P,3) metres model frame}.
