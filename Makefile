@@ -1,7 +1,8 @@
 # Two set-up commands (see README):
 #   make demo  - install everything into .venv and run `argen capture-sim` on its built-in default
-#   make test  - install everything into .venv and run the default (fast) test suite
-# Other targets: make test-slow (slow-marked tests), make bench, make lock (refresh the pins), make clean.
+#   make test  - install everything into .venv and run the fast test suite (every test not marked slow)
+# Other targets: make test-slow (the rest: the slow-marked tests), make test-all (both), make bench,
+# make lock (refresh the pins), make clean.
 
 PY      ?= python3
 VENV    ?= .venv
@@ -61,9 +62,11 @@ demo: install
 	@echo "wrote BOP dataset to demo_out/ (see demo_out/argen.json and capture_log.json)"
 
 test: install
+	@echo "make test: the fast suite (pytest -m 'not slow'); make test-slow runs the rest (the slow-marked tests)"
 	$(VPY) -m pytest -q -m "not slow"
 
 test-slow: install
+	@echo "make test-slow: the slow-marked tests, the rest of the suite that make test leaves out"
 	$(VPY) -m pytest -q -m slow
 
 test-all: install

@@ -8,7 +8,7 @@ Usage: .venv/bin/python bench/bench_infer.py [--data FILE.h5] [--checkpoint CKPT
 
 Sampling + network: a checkpoint (or a randomly initialised network of each ``--preset``, same cost) on the
 label file's frames (median over frames after one warm-up). A random network's output is noise, so the
-pose stage (voting, Kabsch, ICP) is timed on the file's ground-truth labels instead (``oracle_predictor``
+geometry (voting, Kabsch, ICP) is timed on the file's ground-truth labels instead (``oracle_predictor``
 sampled to the network's point count): realistic instance counts and supports. Without ``--data`` a
 3-frame noise-free capture-sim dataset of the built-in objects is made and labelled in a temporary folder.
 The target is the paper's 6 fps (166 ms per frame), which it reached on a TITAN XP GPU.
@@ -47,7 +47,7 @@ def make_data(tmp: Path) -> Path:
 
 def network_times(ckpt, frames: list, device: str) -> dict[str, float]:
     """Median seconds of "sampling" and "network" over frames (first frame is a warm-up)."""
-    from detector.infer import network_predictor
+    from detector.stage1.predictor import network_predictor
 
     pred = network_predictor(ckpt, seed=0, device=device)
     pred(frames[0])
@@ -57,11 +57,12 @@ def network_times(ckpt, frames: list, device: str) -> dict[str, float]:
 
 def pose_times(frames: list, objects, num_points: int) -> dict[str, float]:
     """Median seconds of voting, Kabsch and ICP per frame on ground-truth predictions, and detections per frame."""
-    from detector.infer import estimate, oracle_predictor
-    from detector.pose import PoseConfig
+    from detector.geometry.types import GeometryConfig
+    from detector.infer import estimate
+    from detector.stage1.predictor import oracle_predictor
 
     pred = oracle_predictor(num_points=num_points, seed=0)
-    cfg = PoseConfig(icp=True)
+    cfg = GeometryConfig(icp=True)
     estimate(pred(frames[0]), objects, cfg, {}, frames[0].features[:, :3])
     runs, dets = [], []
     for f in frames:
@@ -76,11 +77,12 @@ def pose_times(frames: list, objects, num_points: int) -> dict[str, float]:
 
 def two_stage_times(ck, frames: list, device: str) -> dict[str, float]:
     """A two-stage checkpoint end to end on real predictions: median seconds per stage and of the whole frame
-    (sampling, network, voting, stage 2, ICP with the model's own pose settings), and detections per frame."""
-    from detector.infer import checkpoint_objects, checkpoint_pose_config, checkpoint_poser, estimate, network_predictor
+    (sampling, network, voting, stage 2, ICP with the model's own geometry settings), and detections per frame."""
+    from detector.infer import checkpoint_geometry_config, checkpoint_objects, checkpoint_poser, estimate
+    from detector.stage1.predictor import network_predictor
 
     objects = checkpoint_objects(ck)[0]
-    cfg = checkpoint_pose_config(ck, None, True)
+    cfg = checkpoint_geometry_config(ck, None, True)
     pred, poser = network_predictor(ck, seed=0, device=device), checkpoint_poser(ck, objects, device)
     runs, dets = [], []
     for k, f in enumerate([frames[0], *frames]):  # the first is a warm-up
@@ -103,14 +105,14 @@ def random_checkpoint(preset: str, objects_dict: dict, device: str):
     import torch
 
     from detector.checkpoint import Checkpoint
-    from detector.data import NORMALISATION
-    from detector.model import PoseNet
-    from detector.train import build_model_config, make_config
+    from detector.data.augment import NORMALISATION
+    from detector.stage1.network import PointNet2
+    from detector.stage1.train import build_model_config, make_config
 
     cfg = make_config(preset, {})
     mcfg = build_model_config(cfg)
     torch.manual_seed(0)
-    model = PoseNet(mcfg, num_classes=len(objects_dict["ids"])).to(device).eval()
+    model = PointNet2(mcfg, num_classes=len(objects_dict["ids"])).to(device).eval()
     return Checkpoint(model=model, model_config=mcfg, class_ids=list(objects_dict["ids"]), objects=objects_dict,
                       num_points=cfg.num_points, step=0, extra={}, normalisation=dict(NORMALISATION))
 
@@ -129,8 +131,8 @@ def main() -> None:
 
     from argen.h5 import LabelFile
     from detector.checkpoint import load_checkpoint
-    from detector.data import object_table_dict
-    from detector.pose import ObjectInfo
+    from detector.data.frames import object_table_dict
+    from detector.geometry.types import ObjectInfo
 
     if args.threads:
         torch.set_num_threads(args.threads)
@@ -144,7 +146,7 @@ def main() -> None:
         ckpts = [("checkpoint", load_checkpoint(args.checkpoint, args.device))] if args.checkpoint else \
             [(p, random_checkpoint(p, objects_dict, args.device)) for p in args.preset]
         for name, ck in ckpts:
-            if ck.pose_net is not None:  # a two-stage model: its whole pipeline on its own predictions
+            if ck.stage2_net is not None:  # a two-stage model: its whole pipeline on its own predictions
                 t = two_stage_times(ck, frames, args.device)
                 ms = {k: round(1000 * v, 1) for k, v in t.items() if k != "detections"}
                 res = {"model": f"{name} (two-stage)", "device": args.device, "threads": torch.get_num_threads(),

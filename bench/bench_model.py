@@ -1,10 +1,10 @@
-"""Benchmark PoseNet training steps: forward + backward seconds per step and peak memory, per preset.
+"""Benchmark PointNet2 training steps: forward + backward seconds per step and peak memory, per preset.
 
     .venv/bin/python bench/bench_model.py [--presets cpu paper] [--batch 4] [--steps 5] [--threads 2]
                                           [--device cpu|cuda] [--torch-indices]
 
 Input: a synthetic scene (table plane plus a few boxes, camera metres) of the preset's natural size
-(cpu: 4096 points, paper: 16384). Indices are precomputed with detector.ops.precompute_indices (as the
+(cpu: 4096 points, paper: 16384). Indices are precomputed with detector.stage1.ops.precompute_indices (as the
 data loader workers do; their time per cloud is reported separately) unless ``--torch-indices``, which
 lets the model compute them in torch inside the step (the GPU path). The step is forward + multitask loss
 + backward + AdamW step; the median of ``--steps`` steps after one warm-up step is reported. Peak memory
@@ -25,10 +25,10 @@ import time
 import numpy as np
 import torch
 
-from detector.loss import LossConfig, multitask_loss
-from detector.model import PoseNet, preset
-from detector.ops import precompute_indices
-from detector.train import keypoint_targets
+from detector.stage1.loss import LossConfig, multitask_loss
+from detector.stage1.network import PointNet2, preset
+from detector.stage1.ops import precompute_indices
+from detector.stage1.train import keypoint_targets
 
 NUM_POINTS = {"cpu": 4096, "paper": 16384}
 
@@ -63,7 +63,7 @@ def bench(name: str, batch: int, steps: int, device: torch.device, torch_indices
     cls = torch.from_numpy(np.stack([s[1] for s in scenes])).to(device)
     cps = torch.from_numpy(np.stack([s[2] for s in scenes])).to(device)
     torch.manual_seed(0)
-    model = PoseNet(cfg, num_classes=1).to(device).train()
+    model = PointNet2(cfg, num_classes=1).to(device).train()
     opt = torch.optim.AdamW(model.parameters(), lr=1e-3)
     times = []
     for _ in range(steps + 1):

@@ -16,7 +16,7 @@ by ``cv2.ppf_match_3d_ICP`` (OpenCV sample's 100 iterations, its other defaults)
 
 Scoring is the project's: ADD, or ADD-S for objects with symmetries in models_info.json
 (``ObjectModel.symmetric``), on the label files' 1000 seeded model points (``argen.label.object_table``),
-detections matched to ground truth greedily by score (``detector.metrics.match_frame``), instances under 10 %
+detections matched to ground truth greedily by score (``detector.evaluation.metrics.match_frame``), instances under 10 %
 visible ignored. Times: median over frames of wall-clock seconds; a frame's time is its scene cloud plus
 ``match()`` of every object (plus ICP of every pose), one process, ``cv2.setNumThreads(--threads)``. The
 ``match()`` of the pip OpenCV build is single-threaded whatever the setting (its parallel loop is OpenMP,
@@ -65,7 +65,7 @@ from argen.features import frame_points
 from argen.label import default_max_depth, load_label_objects, object_table
 from detector.errors import DetectorError
 from detector.evaluate import bop19_summary
-from detector.metrics import accuracy, match_frame, pose_error
+from detector.evaluation.metrics import accuracy, match_frame, pose_error
 from detector.report import bop_csv_name, bop_row, default_dataset_name, json_safe, write_bop_csv
 
 PPF_UNIT = 1000.0  # PPF clouds are in millimetres (see the module docstring): metres x PPF_UNIT

@@ -27,18 +27,20 @@ def one_preset(preset: str, steps: int, device_name: str, data: Path) -> dict:
     """Measure one preset in this process; returns a dict of numbers."""
     import torch
 
-    from detector.data import PointDataset, collate
-    from detector.train import build_model_config, forward_loss, make_config, resolve_device
+    from detector.data.batches import collate
+    from detector.stage1.dataset import PointDataset
+    from detector.stage1.train import build_model_config, forward_loss, make_config
+    from detector.training.devices import resolve_device
 
     cfg = make_config(preset, {"batch_size": 4, "device": device_name})
     device = resolve_device(cfg.device)
     use_indices = device.type == "cpu"
     model_cfg = build_model_config(cfg)
     ds = PointDataset(data, model_cfg, cfg.num_points, augment=True, seed=0, precompute=use_indices)
-    from detector.model import PoseNet
+    from detector.stage1.network import PointNet2
 
     torch.manual_seed(0)
-    model = PoseNet(model_cfg, num_classes=len(ds.class_ids)).to(device)
+    model = PointNet2(model_cfg, num_classes=len(ds.class_ids)).to(device)
     params = sum(p.numel() for p in model.parameters())
     opt = torch.optim.AdamW(model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
     data_times, step_times = [], []

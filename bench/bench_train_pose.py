@@ -5,9 +5,9 @@ Usage: .venv/bin/python bench/bench_train_pose.py --data data/lm_train.h5 [--bat
 
 Data: the median time to make one batch (``batch_frames`` frames' crops with the default augmentation) in this
 process, reading every frame from the label file ("read") or cutting it from the frames' cached crop regions
-("cached", ``PoseTrainConfig.cache_mb``; a first pass fills the cache, untimed). Network: the median of forward +
+("cached", ``Stage2TrainConfig.cache_mb``; a first pass fills the cache, untimed). Network: the median of forward +
 loss + backward + AdamW over the same prepared batches, with the edge-convolutions' training max as
-``detector.cropnet._NeighbourMax`` ("running max") or as the earlier gather to (B, n, k, C) and max ("gather").
+``detector.stage2.network._NeighbourMax`` ("running max") or as the earlier gather to (B, n, k, C) and max ("gather").
 The rounds alternate the two forms so that a VM's drift hits both; medians over all rounds. In a training run the
 data work runs in a loader process beside the network step on the same cores, so both add to a step's time.
 """
@@ -21,9 +21,9 @@ import time
 
 import torch
 
-from detector import cropnet
-from detector.data import CropDataset, collate_crops
-from detector.train_pose import forward_pose_loss, load_pose_config
+from detector.stage2 import network as cropnet
+from detector.stage2.dataset import CropDataset, collate_crops
+from detector.stage2.train import forward_stage2_loss, load_stage2_config
 
 
 def gather_max(b: torch.Tensor, rows: torch.Tensor) -> torch.Tensor:
@@ -42,7 +42,7 @@ def network_step_times(batches: list, cfg, seed: int = 0) -> list[float]:
     out = []
     for batch in batches:
         t = time.perf_counter()
-        loss, _ = forward_pose_loss(net, batch, cfg, torch.device("cpu"))
+        loss, _ = forward_stage2_loss(net, batch, cfg, torch.device("cpu"))
         opt.zero_grad(set_to_none=True)
         loss.backward()
         opt.step()
@@ -58,7 +58,7 @@ def main() -> None:
     ap.add_argument("--threads", type=int, default=2)
     a = ap.parse_args()
     torch.set_num_threads(a.threads)
-    cfg = load_pose_config(None, {"crop.neighbour": 0.5})
+    cfg = load_stage2_config(None, {"crop.neighbour": 0.5})
     nf = cfg.batch_frames
     read = CropDataset(a.data, cfg.crop, augment=True, seed=0)
     cached = CropDataset(a.data, cfg.crop, augment=True, seed=0, cache_mb=cfg.cache_mb)

@@ -18,9 +18,10 @@ import numpy as np
 import torch
 
 from detector.checkpoint import load_checkpoint
-from detector.data import open_label_file
+from detector.data.frames import open_label_file
 from detector.evaluate import evaluate
-from detector.infer import checkpoint_objects, checkpoint_pose_config, checkpoint_poser, network_predictor
+from detector.infer import checkpoint_geometry_config, checkpoint_objects, checkpoint_poser
+from detector.stage1.predictor import network_predictor
 
 #: Colour changes of the (N,3) colours in [0, 1].
 CHANGES = {
@@ -65,7 +66,7 @@ def main() -> None:
         n = lf.num_frames if a.frames is None else min(a.frames, lf.num_frames)
     for name in a.change:
         change = CHANGES[name]
-        cfg = checkpoint_pose_config(ckpt, None, True, None)
+        cfg = checkpoint_geometry_config(ckpt, None, True, None)
         base_pred = network_predictor(ckpt, 0)
         poser = checkpoint_poser(ckpt, checkpoint_objects(ckpt)[0], "cpu", 0)
         pred = recolouring_predictor(base_pred, change) if a.stage in ("both", "stage1") else base_pred

@@ -10,12 +10,12 @@ import numpy as np
 import torch
 
 from argen.h5 import LabelFile
-from detector.checkpoint import read_checkpoint
-from detector.cropnet import build_pose_net
-from detector.crops import CropConfig
-from detector.infer import CropPoseConfig, crop_predictions, pose_from_crop
-from detector.metrics import pose_error
-from detector.pose import ObjectInfo
+from detector.evaluation.metrics import pose_error
+from detector.geometry.types import ObjectInfo
+from detector.stage2.crops import CropConfig
+from detector.stage2.network import build_stage2_net
+from detector.stage2.poser import PoserConfig, crop_predictions, pose_from_crop
+from detector.training.checkpoint_file import read_checkpoint
 
 
 def main() -> None:
@@ -25,13 +25,13 @@ def main() -> None:
     ap.add_argument("--frames", type=int, default=100)
     ap.add_argument("--jitter", type=float, default=0.012)
     ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--verify", type=int, default=None, help="CropPoseConfig.verify (default: its default)")
+    ap.add_argument("--verify", type=int, default=None, help="PoserConfig.verify (default: its default)")
     a = ap.parse_args()
     torch.set_num_threads(2)
-    part = read_checkpoint(a.ckpt)["pose"]  # a stage-2 run's last.pt or a two-stage model.pt
-    net = build_pose_net(part, a.ckpt).eval()
+    part = read_checkpoint(a.ckpt)["stage2"]  # a stage-2 run's last.pt or a two-stage model.pt
+    net = build_stage2_net(part, a.ckpt).eval()
     ccfg = CropConfig.from_dict(part["crop_config"])
-    pcfg = CropPoseConfig() if a.verify is None else CropPoseConfig(verify=a.verify)
+    pcfg = PoserConfig() if a.verify is None else PoserConfig(verify=a.verify)
     ids = part["class_ids"]
     rng = np.random.default_rng(a.seed)
     ok, n, errs, per, t_net = {}, {}, [], {}, 0.0

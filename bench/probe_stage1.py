@@ -13,9 +13,11 @@ import torch
 from scipy.spatial import cKDTree
 
 from argen.h5 import LabelFile
-from detector.checkpoint import Checkpoint, build_model, read_checkpoint
-from detector.infer import network_predictor
-from detector.pose import ObjectInfo, PoseConfig, detect
+from detector.checkpoint import Checkpoint, build_model
+from detector.geometry.types import GeometryConfig, ObjectInfo
+from detector.geometry.voting import detect
+from detector.stage1.predictor import network_predictor
+from detector.training.checkpoint_file import read_checkpoint
 
 
 def main() -> None:
@@ -28,7 +30,7 @@ def main() -> None:
     a = ap.parse_args()
     torch.set_num_threads(1)
     payload = read_checkpoint(a.ckpt)
-    payload = payload.get("detect", payload)
+    payload = payload.get("stage1", payload)
     model, cfg = build_model(payload, a.ckpt, "cpu")
     ck = Checkpoint(model.eval(), cfg, payload["class_ids"], payload["objects"], payload["num_points"],
                     payload["step"], {}, payload["normalisation"])
@@ -42,7 +44,7 @@ def main() -> None:
             f = lf.frame(i)
             p = pred(f)
             dets = detect(p.xyz, p.obj_ids, p.confidence, p.control_points, objs,
-                          PoseConfig(tau=a.tau, centre_votes=True))
+                          GeometryConfig(tau=a.tau, centre_votes=True))
             rows = cKDTree(np.asarray(f.features[:, :3], np.float64)).query(p.xyz)[1]  # the sampled points' rows
             sem, ins, pred_ids = np.asarray(f.semantic)[rows], np.asarray(f.instance)[rows], p.obj_ids
             false_fg += int(np.sum((sem == 0) & (pred_ids > 0)))

@@ -1,6 +1,6 @@
 """`detector eval`: scoring only. Runs a predictor (:mod:`detector.infer`) over a label file, matches the poses
-to the ground truth (:mod:`detector.metrics`: ADD, ADD-S, F1), scores the BOP results file on the labelled BOP
-dataset (:mod:`detector.bop_eval`: BOP19 Average Recall) and writes the report (:mod:`detector.report`).
+to the ground truth (:mod:`detector.evaluation.metrics`: ADD, ADD-S, F1), scores the BOP results file on the labelled BOP
+dataset (:mod:`detector.evaluation.bop_eval`: BOP19 Average Recall) and writes the report (:mod:`detector.report`).
 """
 
 from __future__ import annotations
@@ -13,12 +13,14 @@ import numpy as np
 from tqdm import tqdm
 
 from argen.h5 import LabelFile
-from detector.bop_eval import dataset_pixel_centres, score_bop19, toolkit_dataset_name
 from detector.errors import DetectorError
-from detector.infer import Predictor, estimate
-from detector.metrics import THRESHOLDS, accuracy, accuracy_curve, match_frame, pose_error, prf
-from detector.pose import Detection, ObjectInfo, PoseConfig, icp_counts
+from detector.evaluation.bop_eval import dataset_pixel_centres, score_bop19, toolkit_dataset_name
+from detector.evaluation.metrics import THRESHOLDS, accuracy, accuracy_curve, match_frame, pose_error, prf
+from detector.geometry.icp import icp_counts
+from detector.geometry.types import Detection, GeometryConfig, ObjectInfo
+from detector.infer import estimate
 from detector.report import STAGES, bop_csv_name, bop_row, default_dataset_name, parse_bop_row, write_report
+from detector.stage1.predictor import Predictor
 
 #: The default method name of the BOP results file (``METHOD_DATASET-SPLIT.csv``).
 METHOD = "argen"
@@ -42,7 +44,7 @@ def _summary_for(rows: list[dict], key: str, k_list=THRESHOLDS) -> dict:
 
 
 def evaluate(predictor: Predictor, label_path: str | Path, out_dir: str | Path, icp: bool = False,
-             cfg: PoseConfig | None = None, frames: list[int] | None = None, min_visib: float = 0.1,
+             cfg: GeometryConfig | None = None, frames: list[int] | None = None, min_visib: float = 0.1,
              device: str = "cpu", progress: bool = False, poser=None, method: str = METHOD,
              dataset_name: str | None = None, bop_dataset: str | Path | None = None, bop19: bool = True) -> dict:
     """Evaluate ``predictor`` on a label file and write the report into ``out_dir``.
@@ -50,7 +52,7 @@ def evaluate(predictor: Predictor, label_path: str | Path, out_dir: str | Path, 
     Ground-truth instances with ``visib_fract < min_visib`` are ignored (neither missed nor matched). poser: a
     two-stage model's stage 2 (see :func:`estimate`). The BOP results file is ``METHOD_DATASET-SPLIT.csv``
     (:func:`detector.report.bop_csv_name`): ``method``, ``dataset_name`` (default: the BOP toolkit's name for a
-    capture with one of its datasets' objects and image size, :func:`detector.bop_eval.toolkit_dataset_name`, such as
+    capture with one of its datasets' objects and image size, :func:`detector.evaluation.bop_eval.toolkit_dataset_name`, such as
     ``lmo`` for the 8 LM-O objects, so the toolkit runs on it unmodified; else the label file's source dataset folder
     name, letters and digits only) and the label file's source split.
     BOP19 Average Recall (``bop19``): the BOP CSV's poses scored on the BOP dataset the label file was made from
@@ -63,7 +65,7 @@ def evaluate(predictor: Predictor, label_path: str | Path, out_dir: str | Path, 
     """
     if bop_dataset is not None and not Path(bop_dataset).is_dir():
         raise DetectorError(f"--bop-dataset {bop_dataset} is not a folder")
-    cfg = replace(cfg or PoseConfig(), icp=icp)
+    cfg = replace(cfg or GeometryConfig(), icp=icp)
     keys = ("noicp", "icp") if icp else ("noicp",)
     gt_rows, bop_rows, counts, times = [], [], {}, []
     icp_status = {"accepted": 0, "rejected": 0, "skipped": 0}

@@ -21,8 +21,8 @@ import numpy as np
 from argen import bop
 from argen.features import BOX_EDGES, frame_points, palette, project
 from detector.errors import DetectorError, argen_errors
+from detector.geometry.types import Detection, GeometryConfig, ObjectInfo
 from detector.infer import estimate
-from detector.pose import Detection, ObjectInfo, PoseConfig
 
 MAX_POINTS = 30000  # as argen label's default max_points
 PLY_VIEW = (480, 640)  # (h, w) of the virtual camera a PLY cloud is drawn with
@@ -203,11 +203,11 @@ def detection_json(d: Detection, name: str) -> dict:
             "T_cam_model": d.pose.tolist(), "support": int(d.support), "refined": bool(d.refined), "icp": d.icp}
 
 
-def predict(predictor, inp: PointInput, objects: ObjectInfo, out_dir: Path, cfg: PoseConfig | None = None,
+def predict(predictor, inp: PointInput, objects: ObjectInfo, out_dir: Path, cfg: GeometryConfig | None = None,
             names: dict[int, str] | None = None, poser=None) -> dict:
-    """Run ``predictor`` (see :mod:`detector.infer`) and the pose stage (with a two-stage model's ``poser``)
+    """Run ``predictor`` (see :mod:`detector.infer`) and the geometry (with a two-stage model's ``poser``)
     on ``inp``; write poses.json and poses.png into ``out_dir``. Returns the JSON content."""
-    cfg = cfg or PoseConfig()
+    cfg = cfg or GeometryConfig()
     t0 = time.perf_counter()
     preds = predictor(SimpleNamespace(features=inp.features, scene_id=0, im_id=0))
     timings = dict(preds.timings)

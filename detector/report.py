@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 
 from detector.errors import DetectorError
-from detector.metrics import THRESHOLDS
+from detector.evaluation.metrics import THRESHOLDS
 
 BOP_FIELDS = ("scene_id", "im_id", "obj_id", "score", "R", "t", "time")
 STAGES = ("sampling", "network", "voting", "kabsch", "stage2", "icp")

@@ -1,10 +1,14 @@
 """The default detector: two stages trained one after the other, saved as one model file.
 
-Stage 1 is the paper's PoseNet (cpu preset) trained to segment objects and vote for their box centres only
-(``loss.centre_only``); stage 2 is the crop network (:mod:`detector.cropnet`) trained on crops around the true
-centres, jittered like stage 1's centre error. A run folder holds ``detect/`` and ``pose/`` (each a resumable
-run of its own) and ``model.pt``: both stages' weights and the inference settings (:func:`detector.checkpoint.
-save_two_stage`), written when stage 2 ends. ``resume`` continues whichever stage is unfinished.
+Stage 1 is the paper's PointNet++ (:mod:`detector.stage1`, cpu preset) trained to segment objects and vote for
+their box centres only (``loss.centre_only``); stage 2 is the crop network (:mod:`detector.stage2`) trained on crops
+around the true centres, jittered like stage 1's centre error. A run folder holds ``stage1/`` and ``stage2/`` (each a
+resumable run of its own) and ``model.pt``: both stages' weights and the inference settings
+(:func:`detector.checkpoint.save_two_stage`), written when stage 2 ends. ``resume`` continues whichever stage is
+unfinished.
+
+Older run folders name the stages ``detect/`` and ``pose/`` and their ``two_stage.yaml`` the geometry section
+``pose``: they still resume (:func:`stage_dirs`, :data:`OLD_SECTIONS`).
 """
 
 from __future__ import annotations
@@ -15,61 +19,73 @@ from pathlib import Path
 
 import yaml
 
-from detector.checkpoint import read_checkpoint, save_two_stage
+from detector.checkpoint import save_two_stage
 from detector.config import config_to_dict, load_preset, load_yaml
 from detector.errors import DetectorError
-from detector.infer import CropPoseConfig
-from detector.pose import PoseConfig
-from detector.train import RESUME_FREE_KEYS, check_resumable, make_config, train
-from detector.train_pose import POSE_RESUME_FREE_KEYS, load_pose_config, saved_settings, train_pose
+from detector.geometry.types import GeometryConfig
+from detector.stage1.train import RESUME_FREE_KEYS, make_config, train
+from detector.stage2.poser import PoserConfig
+from detector.stage2.train import STAGE2_RESUME_FREE_KEYS, load_stage2_config, saved_settings, train_stage2
+from detector.training.checkpoint_file import read_checkpoint
+from detector.training.resume import check_resumable
+
+SECTIONS = ("stage1", "stage2", "geometry", "infer")
+#: Older names of the sections (in run folders' two_stage.yaml and in ``--set``): ``pose`` held the geometry settings.
+OLD_SECTIONS = {"pose": "geometry"}
+#: The stages' run folders, and their older names.
+STAGE_DIRS = ("stage1", "stage2")
+OLD_STAGE_DIRS = ("detect", "pose")
 
 #: The defaults of each section (``detector/presets/two-stage.yaml``): stage 1's overrides of the cpu training
-#: preset (centre votes only), stage 2's of PoseTrainConfig, and the pose and inference settings stored in the model
-#: file (keys of detector.pose.PoseConfig and detector.infer.CropPoseConfig).
+#: preset (centre votes only), stage 2's of Stage2TrainConfig, and the inference settings stored in the model file:
+#: geometry (keys of detector.geometry.types.GeometryConfig) and infer (stage 2's, detector.stage2.poser.PoserConfig).
 DEFAULTS: dict[str, dict] = {k: dict(v or {}) for k, v in load_preset("two-stage").items()}
 
 
 @dataclass
 class TwoStageConfig:
-    """stage1: dotted overrides of the cpu TrainConfig; stage2: dotted overrides of PoseTrainConfig;
-    pose: PoseConfig values and infer: CropPoseConfig values, stored in model.pt (the defaults of eval and
-    predict)."""
+    """stage1: dotted overrides of the cpu TrainConfig; stage2: dotted overrides of Stage2TrainConfig;
+    geometry: GeometryConfig values and infer: stage 2's PoserConfig values, stored in model.pt (the defaults of eval
+    and predict)."""
 
     stage1: dict = field(default_factory=dict)
     stage2: dict = field(default_factory=dict)
-    pose: dict = field(default_factory=dict)
+    geometry: dict = field(default_factory=dict)
     infer: dict = field(default_factory=dict)
 
     def resolved(self):
-        """(TrainConfig of stage 1, PoseTrainConfig of stage 2, pose settings, stage-2 inference settings), checked."""
+        """(TrainConfig of stage 1, Stage2TrainConfig of stage 2, geometry settings, stage-2 inference settings),
+        checked."""
 
         s1 = make_config("cpu", {**DEFAULTS["stage1"], **self.stage1})
-        s2 = load_pose_config(None, {**DEFAULTS["stage2"], **self.stage2})
-        pose = {**DEFAULTS["pose"], **self.pose}
+        s2 = load_stage2_config(None, {**DEFAULTS["stage2"], **self.stage2})
+        geometry = {**DEFAULTS["geometry"], **self.geometry}
         infer = {**DEFAULTS["infer"], **self.infer}
-        for name, keys, given in (("pose", PoseConfig.__dataclass_fields__, pose),
-                                  ("infer", CropPoseConfig.__dataclass_fields__, infer)):
+        for name, keys, given in (("geometry", GeometryConfig.__dataclass_fields__, geometry),
+                                  ("infer", PoserConfig.__dataclass_fields__, infer)):
             unknown = [k for k in given if k not in keys]
             if unknown:
                 raise DetectorError(f"two-stage config: unknown {name} option '{unknown[0]}'")
-        return s1, s2, pose, asdict(CropPoseConfig(**infer))
+        return s1, s2, geometry, asdict(PoserConfig(**infer))
 
 
 def load_two_stage_config(path: str | Path | None = None, overrides: dict | None = None) -> TwoStageConfig:
-    """A TwoStageConfig from a YAML file (keys stage1, stage2, pose, infer) and ``--set`` overrides such as
-    ``{"stage2.steps": 3000, "stage1.lr": 1e-3, "pose.tau": 0.5, "infer.verify": 8}``."""
-    data: dict = {"stage1": {}, "stage2": {}, "pose": {}, "infer": {}}
+    """A TwoStageConfig from a YAML file (keys stage1, stage2, geometry, infer) and ``--set`` overrides such as
+    ``{"stage2.steps": 3000, "stage1.lr": 1e-3, "geometry.tau": 0.5, "infer.verify": 8}``. The older section name
+    ``pose`` (:data:`OLD_SECTIONS`) is read as ``geometry``, in the file and in the overrides."""
+    data: dict = {k: {} for k in SECTIONS}
     if path is not None:
         path = Path(path)
-        loaded = load_yaml(path)
+        loaded = {OLD_SECTIONS.get(k, k): v for k, v in load_yaml(path).items()}
         if set(loaded) - set(data):
-            raise DetectorError(f"{path}: a two-stage config has the keys stage1, stage2, pose and infer")
+            raise DetectorError(f"{path}: a two-stage config has the keys {', '.join(SECTIONS)}")
         for k, v in loaded.items():
             data[k].update(v or {})
     for key, value in (overrides or {}).items():
         head, _, rest = key.partition(".")
+        head = OLD_SECTIONS.get(head, head)
         if head not in data or not rest:
-            raise DetectorError(f"unknown two-stage option '{key}' (use stage1.KEY, stage2.KEY, pose.KEY or "
+            raise DetectorError(f"unknown two-stage option '{key}' (use stage1.KEY, stage2.KEY, geometry.KEY or "
                                 "infer.KEY)")
         data[head][rest] = value
     cfg = TwoStageConfig(**data)
@@ -79,44 +95,55 @@ def load_two_stage_config(path: str | Path | None = None, overrides: dict | None
 
 def train_two_stage(cfg: TwoStageConfig, train_path: str | Path, out_dir: str | Path, resume: bool = False,
                     progress: bool = True, val_path: str | Path | None = None) -> Path:
-    """Train stage 1 into ``out_dir/detect`` and stage 2 into ``out_dir/pose``, then write ``out_dir/model.pt``.
+    """Train stage 1 into ``out_dir/stage1`` and stage 2 into ``out_dir/stage2`` (:func:`stage_dirs`), then write
+    ``out_dir/model.pt``.
 
     A stage whose run is complete is not trained again; one that was interrupted is resumed (with ``resume``).
     Resuming checks both stages' settings first: only those that do not change the result (e.g. ``stage2.cache_mb``,
     the devices, more steps) may differ from the run's. val_path: a validation label file for stage 1 (its
-    ``metrics.csv`` gets val_loss / val_acc every ``stage1.val_every`` steps, and ``detect/best.pt`` keeps the
+    ``metrics.csv`` gets val_loss / val_acc every ``stage1.val_every`` steps, and ``stage1/best.pt`` keeps the
     weights of the lowest); the model file takes the last weights of each stage. Returns the model file's path.
     """
     if int(os.environ.get("WORLD_SIZE", "1")) > 1:
         raise DetectorError("the two-stage model trains in one process (on a GPU with --device cuda); torchrun is "
                             "for --preset cpu or paper")
     out_dir = Path(out_dir)
-    s1, s2, pose, infer = cfg.resolved()
-    d1, d2 = out_dir / "detect", out_dir / "pose"
-    done1, saved1 = _progress(d1 / "last.pt", "detect")
-    done2, saved2 = _progress(d2 / "last.pt", "pose")
+    s1, s2, geometry, infer = cfg.resolved()
+    d1, d2 = stage_dirs(out_dir)
+    done1, saved1 = _progress(d1 / "last.pt", "stage1")
+    done2, saved2 = _progress(d2 / "last.pt", "stage2")
     if resume:  # before anything runs: a stage that is complete is not trained again, so its settings are checked here
         if saved1 is not None:
             check_resumable(saved1, s1, d1 / "last.pt", RESUME_FREE_KEYS)
         if saved2 is not None:
-            check_resumable(saved_settings(saved2), s2, d2 / "last.pt", POSE_RESUME_FREE_KEYS)
+            check_resumable(saved_settings(saved2), s2, d2 / "last.pt", STAGE2_RESUME_FREE_KEYS)
     out_dir.mkdir(parents=True, exist_ok=True)
     (out_dir / "two_stage.yaml").write_text(yaml.safe_dump(config_to_dict(cfg), sort_keys=False))
     if done1 is None or done1 < s1.steps:
         if done1 is not None and not resume:
             raise DetectorError(f"{out_dir} holds an unfinished run; add --resume to continue it")
         train(s1, train_path, d1, val_path=val_path, resume=done1 is not None, progress=progress)
-    done2 = _progress(d2 / "last.pt", "pose")[0]
+    done2 = _progress(d2 / "last.pt", "stage2")[0]
     if done2 is None or done2 < s2.steps:
         if done2 is not None and not resume:
             raise DetectorError(f"{out_dir} holds an unfinished run; add --resume to continue it")
-        train_pose(s2, train_path, d2, resume=done2 is not None, progress=progress)
-    detect = read_checkpoint(d1 / "last.pt")
-    part = read_checkpoint(d2 / "last.pt")["pose"]
-    if list(part["class_ids"]) != list(detect["class_ids"]):
-        raise DetectorError(f"the stages learned different objects ({detect['class_ids']} vs {part['class_ids']})")
-    return save_two_stage(out_dir / "model.pt", detect, {**part, "infer_config": infer},
-                          {"pose_config": pose, "train_file": str(train_path)})
+        train_stage2(s2, train_path, d2, resume=done2 is not None, progress=progress)
+    stage1 = read_checkpoint(d1 / "last.pt")
+    part = read_checkpoint(d2 / "last.pt")["stage2"]
+    if list(part["class_ids"]) != list(stage1["class_ids"]):
+        raise DetectorError(f"the stages learned different objects ({stage1['class_ids']} vs {part['class_ids']})")
+    return save_two_stage(out_dir / "model.pt", stage1, {**part, "infer_config": infer},
+                          {"geometry_config": geometry, "train_file": str(train_path)})
+
+
+def stage_dirs(out_dir: str | Path) -> tuple[Path, Path]:
+    """The run folders of stage 1 and stage 2 in ``out_dir``: ``stage1/`` and ``stage2/``, or a run's older
+    ``detect/`` and ``pose/`` when it has them (and not the new ones)."""
+    out_dir = Path(out_dir)
+    new, old = [out_dir / d for d in STAGE_DIRS], [out_dir / d for d in OLD_STAGE_DIRS]
+    if not any(d.exists() for d in new) and any(d.is_dir() for d in old):
+        return old[0], old[1]
+    return new[0], new[1]
 
 
 def _progress(path: Path, stage: str) -> tuple[int | None, dict | None]:
@@ -124,5 +151,5 @@ def _progress(path: Path, stage: str) -> tuple[int | None, dict | None]:
     if not path.is_file():
         return None, None
     payload = read_checkpoint(path)
-    part = payload["pose"] if stage == "pose" else payload
+    part = payload["stage2"] if stage == "stage2" else payload
     return int(part["step"]), (part.get("train_state") or {}).get("config")

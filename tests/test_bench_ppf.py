@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 from argen.models.objects import builtin_objects
-from detector.metrics import add
+from detector.evaluation.metrics import add
 
 REPO = Path(__file__).resolve().parents[1]
 

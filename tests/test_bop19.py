@@ -14,8 +14,8 @@ from typer.testing import CliRunner
 
 from argen import bop
 from argen.cli.app import app as argen_app
-from detector import bop19
-from detector.bop_eval import ModelSet, render_depth, score_bop19, toolkit_dataset_name
+from detector.evaluation import bop19
+from detector.evaluation.bop_eval import ModelSet, render_depth, score_bop19, toolkit_dataset_name
 from detector.report import bop_row, parse_bop_row, read_bop_csv
 
 DATA = Path(__file__).resolve().parents[2] / "shared/data"

@@ -12,8 +12,8 @@ from typer.testing import CliRunner
 from argen.cli.app import app as argen_app
 from argen.h5 import LabelFile
 from argen.label import LabelConfig, LabelRequest, run_label
-from detector.cropnet import CropNet, CropNetConfig, EdgeConv, _NeighbourMax, crop_loss
-from detector.crops import (
+from detector.stage2.network import CropNet, CropNetConfig, EdgeConv, _NeighbourMax, crop_loss
+from detector.stage2.crops import (
     CropConfig,
     crop_input,
     crop_region,
@@ -23,10 +23,11 @@ from detector.crops import (
     symmetry_targets,
     training_crop,
 )
-from detector.data import NORMALISATION, CropDataset, collate_crops, input_normalisation
+from detector.data.augment import NORMALISATION, input_normalisation
 from detector.errors import DetectorError
-from detector.pose import kabsch_batch, ransac_kabsch
-from detector.train_pose import load_pose_config
+from detector.geometry.kabsch import kabsch_batch, ransac_kabsch
+from detector.stage2.dataset import CropDataset, collate_crops
+from detector.stage2.train import load_stage2_config
 
 
 @pytest.fixture(scope="module")
@@ -77,7 +78,7 @@ def test_training_crop_targets_are_the_instance_and_its_model_coordinates(labels
 
 
 def test_neighbour_copy_is_the_instance_moved_across_the_ray_and_upright():
-    from detector.crops import add_neighbour
+    from detector.stage2.crops import add_neighbour
 
     rng = np.random.default_rng(11)
     centre = np.array([0.1, -0.05, 0.8])
@@ -130,7 +131,7 @@ def test_training_crops_with_a_neighbour_copy_keep_their_targets(labels):
 def test_camera_colour_augmentation_spans_real_camera_changes(labels):
     """The "camera" colour augmentation: seeded, in [0, 1], exposure below 0.7 and above 1.3 both drawn, some crops
     grey and some without colour; a training crop with it keeps the points and targets of the geometry."""
-    from detector.crops import camera_colour
+    from detector.data.augment import camera_colour
 
     rng = np.random.default_rng(0)
     rgb = rng.uniform(0.1, 0.8, (200, 3)).astype(np.float32)
@@ -218,7 +219,7 @@ def test_edge_convolution_equals_its_definition_per_point():
     with pytest.raises(DetectorError, match="norm_before_max"):
         CropNetConfig.from_dict({**CropNetConfig().to_dict(), "norm_before_max": True})
     # a stage-2 run started when the option existed resumes: its saved settings name this network
-    from detector.train_pose import saved_settings
+    from detector.stage2.train import saved_settings
 
     assert saved_settings({"net": {"k": 12, "norm_before_max": False}, "steps": 3}) == {"net": {"k": 12}, "steps": 3}
 
@@ -270,7 +271,8 @@ def test_batched_kabsch_and_fit_measure_equal_their_one_at_a_time_forms():
     fit_residuals give one weighting / one pose at a time, reflections excluded."""
     from scipy.spatial import cKDTree
 
-    from detector.pose import fit_residuals, kabsch, weighted_kabsch_shared
+    from detector.geometry.icp import fit_residuals
+    from detector.geometry.kabsch import kabsch, weighted_kabsch_shared
 
     rng = np.random.default_rng(4)
     m = rng.normal(size=(60, 3)) * 0.05
@@ -349,9 +351,9 @@ def test_crop_region_cache_gives_the_same_crops_and_respects_its_size(labels):
         # only instances of the listed objects reach into it
         none = crop_region(frame, {}, cfg)
         assert len(none.features) == 0
-    assert load_pose_config(None).cache_mb > 0  # on by default
+    assert load_stage2_config(None).cache_mb > 0  # on by default
     with pytest.raises(DetectorError, match="cache_mb"):
-        load_pose_config(None, {"cache_mb": -1})
+        load_stage2_config(None, {"cache_mb": -1})
 
 
 def test_crop_dataset_items_and_a_few_steps_lower_the_loss(labels):
@@ -406,7 +408,7 @@ def test_two_stage_train_resume_eval_predict(labels, tmp_path):
     from detector.cli.app import app as det_app
     from detector.two_stage import DEFAULTS
 
-    tau = DEFAULTS["pose"]["tau"]  # the two-stage default, stored in the model file
+    tau = DEFAULTS["geometry"]["tau"]  # the two-stage default, stored in the model file
 
     run = CliRunner()
     out = tmp_path / "run"
@@ -419,15 +421,15 @@ def test_two_stage_train_resume_eval_predict(labels, tmp_path):
                              "--set", "stage2.keep_every=2", "--set", "stage1.val_every=1", "--val", str(labels),
                              "--device", "cpu", "--seed", "3", "--workers", "0"])
     assert r.exit_code == 0, r.output
-    assert (out / "model.pt").is_file() and (out / "detect" / "last.pt").is_file() and (out / "pose" / "last.pt").is_file()
-    assert (out / "detect" / "best.pt").is_file()  # --val reached stage 1
-    assert all(row["val_loss"] for row in metric_rows(out / "detect"))
-    for stage in ("detect", "pose"):
+    assert all((out / f).is_file() for f in ("model.pt", "stage1/last.pt", "stage2/last.pt"))
+    assert (out / "stage1" / "best.pt").is_file()  # --val reached stage 1
+    assert all(row["val_loss"] for row in metric_rows(out / "stage1"))
+    for stage in ("stage1", "stage2"):
         used = yaml.safe_load((out / stage / "config.yaml").read_text())
         assert (used["device"], used["seed"], used["num_workers"]) == ("cpu", 3, 0), stage
     ck = load_checkpoint(out / "model.pt")
-    assert ck.pose_net is not None and ck.pose_config["centre_votes"] and ck.pose_config["tau"] == tau
-    assert ck.pose["class_ids"] == ck.class_ids
+    assert ck.stage2_net is not None and ck.geometry_config["centre_votes"] and ck.geometry_config["tau"] == tau
+    assert ck.stage2["class_ids"] == ck.class_ids
     # a setting that changes the result is refused on resume, for either stage (stage 1 is complete: checked first)
     for key in ("stage1.lr=0.01", "stage2.crop.radius=0.8", "stage1.num_points=512"):
         r = run.invoke(det_app, ["train", str(labels), "--out", str(out), "--resume", "--quiet", "--set", key])
@@ -437,16 +439,16 @@ def test_two_stage_train_resume_eval_predict(labels, tmp_path):
                              "--set", "stage2.cache_mb=0.5", "--device", "cpu"])
     assert r.exit_code == 0, r.output
     assert yaml.safe_load((out / "two_stage.yaml").read_text())["stage2"]["cache_mb"] == 0.5
-    rows = (out / "pose" / "metrics.csv").read_text().strip().splitlines()[1:]
+    rows = (out / "stage2" / "metrics.csv").read_text().strip().splitlines()[1:]
     assert [int(x.split(",")[0]) for x in rows] == [1, 2, 3, 4, 5]
-    assert len((out / "detect" / "metrics.csv").read_text().strip().splitlines()) == 3
+    assert len((out / "stage1" / "metrics.csv").read_text().strip().splitlines()) == 3
     # the kept stage-2 snapshots (keep_every 2, kept across the resume): weights without optimiser state
-    from detector.checkpoint import read_checkpoint
+    from detector.training.checkpoint_file import read_checkpoint
 
-    snaps = sorted(p.name for p in (out / "pose").glob("step_*.pt"))
+    snaps = sorted(p.name for p in (out / "stage2").glob("step_*.pt"))
     assert snaps == ["step_000002.pt", "step_000004.pt"]
-    snap = read_checkpoint(out / "pose" / "step_000004.pt")["pose"]
-    assert snap["step"] == 4 and snap["train_state"] is None and snap["class_ids"] == ck.pose["class_ids"]
+    snap = read_checkpoint(out / "stage2" / "step_000004.pt")["stage2"]
+    assert snap["step"] == 4 and snap["train_state"] is None and snap["class_ids"] == ck.stage2["class_ids"]
     # examples/linemod/curve.py evaluates each snapshot (and the final weights) with the run's stage 1
     import importlib.util
     from pathlib import Path
@@ -459,7 +461,7 @@ def test_two_stage_train_resume_eval_predict(labels, tmp_path):
     assert [p["step"] for p in points] == [2, 4, 5]
     minutes = [p["minutes"] for p in points]
     assert 0.5 <= minutes[0] and minutes == sorted(minutes)
-    log = out / "pose" / "metrics.csv"
+    log = out / "stage2" / "metrics.csv"
     assert 0 < curve.train_seconds(log, 2) < curve.train_seconds(log, 4) < curve.train_seconds(log)
     assert all(0.0 <= p[k] <= 100.0 for p in points for k in ("noicp", "icp"))
     # eval and predict with the model's defaults
@@ -474,8 +476,42 @@ def test_two_stage_train_resume_eval_predict(labels, tmp_path):
     assert r.exit_code == 0, r.output
     assert (tmp_path / "pred" / "poses.png").is_file()
     # a stage-2 run's own last.pt is not a model
-    r = run.invoke(det_app, ["eval", str(out / "pose" / "last.pt"), str(labels), "--out", str(rep)])
+    r = run.invoke(det_app, ["eval", str(out / "stage2" / "last.pt"), str(labels), "--out", str(rep)])
     assert r.exit_code == 2 and "model.pt" in r.stderr
+
+
+def test_a_run_folder_with_the_older_names_resumes(labels, tmp_path):
+    """A run folder written before the stages had their names (detect/, pose/, two_stage.yaml with a pose section,
+    checkpoints with the keys detect / pose / pose_config) resumes in its own folders and gives a model file."""
+    from detector.checkpoint import load_checkpoint
+    from detector.cli.app import app as det_app
+    from detector.training.checkpoint_file import FORMAT, read_checkpoint
+
+    run, out = CliRunner(), tmp_path / "run"
+    r = run.invoke(det_app, ["train", str(labels), "--out", str(out), *tiny_two_stage_args(2, 2), "--device", "cpu",
+                             "--set", "geometry.tau=0.3"])
+    assert r.exit_code == 0, r.output
+    (out / "stage1").rename(out / "detect")
+    (out / "stage2").rename(out / "pose")
+    for f in (out / "pose" / "last.pt", out / "model.pt"):  # written back under the old keys (version 2)
+        new = torch.load(f, map_location="cpu", weights_only=True)
+        old = {"format": FORMAT, "version": 2, "pose": new["stage2"]}
+        if "stage1" in new:
+            old.update(detect=new["stage1"], extra={"pose_config": new["extra"].pop("geometry_config"),
+                                                    **new["extra"]})
+        torch.save(old, f)
+    cfg = yaml.safe_load((out / "two_stage.yaml").read_text())
+    cfg["pose"] = cfg.pop("geometry")
+    (out / "two_stage.yaml").write_text(yaml.safe_dump(cfg))
+    assert load_checkpoint(out / "model.pt").geometry_config["tau"] == 0.3
+    (out / "model.pt").unlink()
+    r = run.invoke(det_app, ["train", str(labels), "--out", str(out), "--resume", "--quiet", "--set", "stage2.steps=3"])
+    assert r.exit_code == 0, r.output
+    assert not (out / "stage1").exists() and not (out / "stage2").exists()
+    assert read_checkpoint(out / "pose" / "last.pt")["stage2"]["step"] == 3
+    assert len((out / "pose" / "metrics.csv").read_text().strip().splitlines()) == 4
+    ck = load_checkpoint(out / "model.pt")
+    assert ck.stage2_net is not None and ck.geometry_config["tau"] == 0.3
 
 
 TINY_STAGE2 = {"steps": 40, "checkpoint_every": 5, "batch_frames": 2, "num_workers": 0, "warmup_steps": 2,
@@ -485,9 +521,9 @@ TINY_STAGE2 = {"steps": 40, "checkpoint_every": 5, "batch_frames": 2, "num_worke
 #: Trains the stage-2 run of config file argv[1] on label file argv[2] into folder argv[3] (to be killed).
 STAGE2_SCRIPT = """
 import sys, torch, yaml
-from detector.train_pose import load_pose_config, train_pose
+from detector.stage2.train import load_stage2_config, train_stage2
 torch.set_num_threads(1)
-train_pose(load_pose_config(yaml.safe_load(open(sys.argv[1]))), sys.argv[2], sys.argv[3], progress=False)
+train_stage2(load_stage2_config(yaml.safe_load(open(sys.argv[1]))), sys.argv[2], sys.argv[3], progress=False)
 """
 
 
@@ -510,13 +546,13 @@ def test_stage2_killed_and_resumed_with_a_smaller_cache_equals_the_uninterrupted
     import time
     from dataclasses import replace
 
-    from detector.checkpoint import read_checkpoint
     from detector.config import config_to_dict
-    from detector.train_pose import train_pose
+    from detector.stage2.train import train_stage2
+    from detector.training.checkpoint_file import read_checkpoint
 
     torch.set_num_threads(1)
-    cfg = load_pose_config(None, TINY_STAGE2)
-    train_pose(cfg, labels, tmp_path / "ref", progress=False)
+    cfg = load_stage2_config(None, TINY_STAGE2)
+    train_stage2(cfg, labels, tmp_path / "ref", progress=False)
     (tmp_path / "cfg.yaml").write_text(yaml.safe_dump(config_to_dict(cfg)))
     for attempt in range(3):
         out = tmp_path / f"run{attempt}"
@@ -528,16 +564,16 @@ def test_stage2_killed_and_resumed_with_a_smaller_cache_equals_the_uninterrupted
         os.kill(proc.pid, signal.SIGKILL)
         _, err = proc.communicate()
         assert proc.returncode in (-signal.SIGKILL, 0), err.decode()
-        if read_checkpoint(out / "last.pt")["pose"]["step"] < cfg.steps:
+        if read_checkpoint(out / "last.pt")["stage2"]["step"] < cfg.steps:
             break  # really interrupted (else it finished first: try again)
-    done = read_checkpoint(out / "last.pt")["pose"]["step"]
+    done = read_checkpoint(out / "last.pt")["stage2"]["step"]
     assert done < cfg.steps and done % cfg.checkpoint_every == 0
     with pytest.raises(DetectorError, match="cannot resume with lr"):
-        train_pose(replace(cfg, lr=cfg.lr / 2), labels, out, resume=True, progress=False)
-    train_pose(replace(cfg, cache_mb=0.01, checkpoint_every=7), labels, out, resume=True, progress=False)
+        train_stage2(replace(cfg, lr=cfg.lr / 2), labels, out, resume=True, progress=False)
+    train_stage2(replace(cfg, cache_mb=0.01, checkpoint_every=7), labels, out, resume=True, progress=False)
     assert metric_rows(out) == metric_rows(tmp_path / "ref")
     assert len(metric_rows(out)) == cfg.steps
-    a, b = (read_checkpoint(d / "last.pt")["pose"]["model_state"] for d in (tmp_path / "ref", out))
+    a, b = (read_checkpoint(d / "last.pt")["stage2"]["model_state"] for d in (tmp_path / "ref", out))
     assert all(torch.equal(a[k], b[k]) for k in a)
 
 
@@ -577,7 +613,7 @@ class TrueCropNet(torch.nn.Module):
 
 def centre_detection(objs, oid: int, c: np.ndarray):
     """A stage-1-like detection of object ``oid`` at centre ``c`` (3,) metres: its box moved there, no orientation."""
-    from detector.pose import Detection
+    from detector.geometry.types import Detection
 
     shift = c - objs.control_points[oid][8]
     return Detection(oid, 1.0, np.eye(3), shift, 10, objs.control_points[oid] + shift, np.arange(3))
@@ -585,9 +621,9 @@ def centre_detection(objs, oid: int, c: np.ndarray):
 
 def test_crop_poser_with_true_crop_labels_gives_exact_poses(labels):
     """Stage 2 on true foreground and coordinates, from centres 1.5 cm off: every pose within 2 % of the diameter."""
-    from detector.infer import CropPoser
-    from detector.metrics import pose_error
-    from detector.pose import ObjectInfo
+    from detector.evaluation.metrics import pose_error
+    from detector.geometry.types import ObjectInfo
+    from detector.stage2.poser import CropPoser
 
     cfg = CropConfig(num_points=256)
     rng = np.random.default_rng(3)
@@ -621,8 +657,9 @@ def test_pose_from_crop_returns_the_best_fit_first_and_the_other_hypotheses_by_f
     """Verification ranks the RANSAC hypotheses by how well the model surface fits the foreground points: with
     60 % right and 40 % wrong coordinates the exact pose comes first, and the alternatives follow by fit."""
     from argen.models.objects import builtin_objects
-    from detector.infer import CropPoseConfig, pose_from_crop
-    from detector.pose import ObjectInfo, fit_residuals, fit_rms
+    from detector.geometry.icp import fit_residuals, fit_rms
+    from detector.geometry.types import ObjectInfo
+    from detector.stage2.poser import PoserConfig, pose_from_crop
 
     rng = np.random.default_rng(5)
     obj = builtin_objects(["drill"])[0]
@@ -634,7 +671,7 @@ def test_pose_from_crop_returns_the_best_fit_first_and_the_other_hypotheses_by_f
     mxyz = m.copy()
     wrong = rng.random(200) < 0.4
     mxyz[wrong] = rng.normal(size=(wrong.sum(), 3)) * 0.3 * obj.diameter
-    cfg = CropPoseConfig(verify=8)
+    cfg = PoserConfig(verify=8)
     R1, t1, fg, others = pose_from_crop(xyz, np.ones(200), mxyz, obj.diameter, cfg, rng, objs.surface(1))
     assert len(fg) == 200 and len(others) == 7
     assert np.abs(R1 - R).max() < 1e-6 and np.linalg.norm(t1 - t) < 1e-6
@@ -642,14 +679,14 @@ def test_pose_from_crop_returns_the_best_fit_first_and_the_other_hypotheses_by_f
     fits = [fit_rms(fit_residuals(xyz, tree, normals, Ra, ta, 0.05 * obj.diameter), cfg.verify_trim)
             for Ra, ta in [(R1, t1)] + others]
     assert fits == sorted(fits)
-    _, _, _, none = pose_from_crop(xyz, np.ones(200), mxyz, obj.diameter, CropPoseConfig(verify=1), rng, None)
+    _, _, _, none = pose_from_crop(xyz, np.ones(200), mxyz, obj.diameter, PoserConfig(verify=1), rng, None)
     assert none == []
 
 
 def busiest_frame(lf):
-    """A label file's object table, its :class:`detector.pose.ObjectInfo`, the class ids and the frame with the most
+    """A label file's object table, its :class:`detector.geometry.types.ObjectInfo`, the class ids and the frame with the most
     instances."""
-    from detector.pose import ObjectInfo
+    from detector.geometry.types import ObjectInfo
 
     tab = lf.objects
     f = max((lf.frame(i) for i in range(lf.num_frames)), key=lambda f: len(f.instances))
@@ -659,7 +696,7 @@ def busiest_frame(lf):
 def test_each_recentre_cuts_every_crop_again(labels):
     """recentre N cuts each crop N more times around its latest pose's centre. On true labels the second crop's
     pose is already exact, so a third crop gives the same poses."""
-    from detector.infer import CropPoseConfig, CropPoser
+    from detector.stage2.poser import CropPoser, PoserConfig
 
     cfg = CropConfig(num_points=256)
     rng = np.random.default_rng(4)
@@ -678,7 +715,7 @@ def test_each_recentre_cuts_every_crop_again(labels):
             net = TrueCropNet(f, tab, ids, cfg)
             seen = []
             net.register_forward_hook(lambda mod, args, out: seen.append(len(args[1])))
-            poser = CropPoser(net, ids, objs, cfg, NORMALISATION, CropPoseConfig(recentre=recentre))
+            poser = CropPoser(net, ids, objs, cfg, NORMALISATION, PoserConfig(recentre=recentre))
             out = poser(dets, f.features)
             crops[recentre], poses[recentre] = seen, [(d.R, d.t) for d in out]
     assert crops[1] == [len(dets)] * 2 and crops[2] == [len(dets)] * 3
@@ -687,8 +724,8 @@ def test_each_recentre_cuts_every_crop_again(labels):
 
 
 def test_crop_subsets_are_disjoint_while_the_crop_has_enough_points():
-    from detector.crops import sample_crop
-    from detector.infer import crop_subsets
+    from detector.stage2.crops import sample_crop
+    from detector.stage2.poser import crop_subsets
 
     rows = np.arange(1000, 1700)  # a crop of 700 frame rows
     subs = crop_subsets(rows, 256, 2, np.random.default_rng(0))
@@ -704,8 +741,8 @@ def test_pooled_crop_samples_feed_the_pose_all_their_points(labels):
     """With samples 3 the second crop runs the network on three point subsets of each crop and its pose uses the
     foreground points of all three: on true labels every pose is still exact, and each detection carries more
     distinct foreground points than one subset holds."""
-    from detector.infer import CropPoseConfig, CropPoser
-    from detector.metrics import pose_error
+    from detector.evaluation.metrics import pose_error
+    from detector.stage2.poser import CropPoser, PoserConfig
 
     cfg = CropConfig(num_points=128)
     rng = np.random.default_rng(6)
@@ -722,7 +759,7 @@ def test_pooled_crop_samples_feed_the_pose_all_their_points(labels):
             net = TrueCropNet(f, tab, ids, cfg)
             batches = []
             net.register_forward_hook(lambda mod, args, out: batches.append(len(args[1])))
-            out = CropPoser(net, ids, objs, cfg, NORMALISATION, CropPoseConfig(samples=samples, fit_points=100))(
+            out = CropPoser(net, ids, objs, cfg, NORMALISATION, PoserConfig(samples=samples, fit_points=100))(
                 dets, f.features)
             assert batches == [len(dets), samples * len(dets)]  # the first crop once, the second `samples` times
             assert len(out) == len(dets)

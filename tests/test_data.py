@@ -1,4 +1,5 @@
-"""Tests of detector.data: items agree with the label file, augmentation keeps labels consistent, bad files fail clearly.
+"""Tests of detector.data and detector.stage1.dataset: items agree with the label file, augmentation keeps labels
+consistent, bad files fail clearly.
 
 Also home of ``write_synthetic_h5``: a small exact label file (boxes resting on a table, ray cast from a
 pinhole camera) written with h5py following docs/hdf5-schema.md; test_train.py imports it.
@@ -169,10 +170,11 @@ import pickle  # noqa: E402
 import torch  # noqa: E402
 from pykdtree.kdtree import KDTree  # noqa: E402
 
-from detector.data import (NORMALISATION, PointDataset, augment, class_index, collate, inference_batch,  # noqa: E402
-                           normalise_features, sample_rows)
+from detector.data.augment import NORMALISATION, augment, normalise_features  # noqa: E402
+from detector.data.batches import collate
 from detector.errors import DetectorError  # noqa: E402
-from detector.train import make_config  # noqa: E402
+from detector.stage1.dataset import PointDataset, class_index, inference_batch, sample_rows
+from detector.stage1.train import make_config  # noqa: E402
 
 torch.set_num_threads(1)
 NUM_POINTS = 1024
@@ -180,7 +182,7 @@ NUM_POINTS = 1024
 
 def small_model_config():
     """The cpu preset made tiny (TINY_MODEL) for fast tests."""
-    from detector.model import ModelConfig, preset
+    from detector.stage1.network import ModelConfig, preset
 
     return ModelConfig.from_dict({**preset("cpu").to_dict(), **TINY_MODEL})
 

@@ -13,10 +13,10 @@ import torch
 from test_data import TINY_MODEL, write_synthetic_h5
 
 from detector.checkpoint import load_checkpoint
-from detector.data import StreamBatchSampler, rank_share
+from detector.data.batches import StreamBatchSampler, rank_share
 from detector.errors import DetectorError
-from detector.loss import LossConfig, multitask_loss
-from detector.train import read_metrics
+from detector.stage1.loss import LossConfig, multitask_loss
+from detector.training.metrics_log import read_metrics
 
 torch.set_num_threads(1)
 
@@ -96,12 +96,12 @@ def test_two_gloo_processes_match_single_process_training(tmp_path):
 
 
 def _initial_weights(tmp_path: Path, num_classes: int) -> dict[str, torch.Tensor]:
-    from detector.model import PoseNet
-    from detector.train import build_model_config, load_config_file
+    from detector.stage1.network import PointNet2
+    from detector.stage1.train import build_model_config, load_config_file
 
     cfg = load_config_file(tmp_path / "single" / "config.yaml")
     torch.manual_seed(cfg.seed)
-    net = PoseNet(build_model_config(cfg), num_classes=num_classes)
+    net = PointNet2(build_model_config(cfg), num_classes=num_classes)
     return {k: v.double() for k, v in net.state_dict().items() if v.is_floating_point()}
 
 

@@ -13,7 +13,7 @@ from test_data import TINY_MODEL, write_synthetic_h5
 from typer.testing import CliRunner
 
 from detector.cli.app import app
-from detector.train import read_metrics
+from detector.training.metrics_log import read_metrics
 
 torch.set_num_threads(1)
 runner = CliRunner()

@@ -1,4 +1,4 @@
-"""detector eval: the oracle run through the whole pose stage on a real capture-sim + label file; report files."""
+"""detector eval: the oracle run through the whole geometry on a real capture-sim + label file; report files."""
 
 from __future__ import annotations
 
@@ -13,13 +13,14 @@ from typer.testing import CliRunner
 from argen.cli.app import app as argen_app
 from argen.h5 import LabelFile
 from argen.label import LabelConfig, LabelRequest, run_label
-from detector import model
-from detector.checkpoint import save_checkpoint
-from detector.data import NORMALISATION, object_table_dict
+from detector.data.augment import NORMALISATION
+from detector.data.frames import object_table_dict
 from detector.evaluate import bop19_summary, evaluate
-from detector.infer import Predictions, oracle_predictor
-from detector.pose import PoseConfig
+from detector.geometry.types import GeometryConfig
 from detector.report import read_bop_csv
+from detector.stage1 import network as model
+from detector.stage1.predictor import Predictions, oracle_predictor
+from detector.training.checkpoint_file import save_checkpoint
 
 
 @pytest.fixture(scope="session")
@@ -96,7 +97,7 @@ def test_oracle_with_wrong_offsets_is_scored_as_wrong(label_file, tmp_path):
 def test_oracle_with_icp_and_subsampling(label_file, tmp_path):
     """With ICP on the oracle's exact (subsampled) points the poses stay correct; timings are recorded."""
     s = evaluate(oracle_predictor(num_points=4096, seed=1), label_file, tmp_path, icp=True,
-                 cfg=PoseConfig(tau=0.5))
+                 cfg=GeometryConfig(tau=0.5))
     for o in s["objects"]:
         assert o["add"]["icp"]["0.10"] == 1.0 and o["add"]["noicp"]["0.10"] == 1.0
     # exact poses stay exact: ICP never moves one by 1 mm or more (it is refused unless it fits better)
@@ -156,7 +157,7 @@ def test_predict_on_bop_frame_depth_png_and_ply(dataset, tmp_path):
     import open3d as o3d
 
     from argen import bop
-    from detector.pose import ObjectInfo
+    from detector.geometry.types import ObjectInfo
     from detector.predict import load_input, predict
 
     ds, _ = dataset
@@ -218,13 +219,13 @@ def test_predict_input_errors(tmp_path):
 
 @pytest.fixture(scope="module")
 def random_checkpoint(label_file, tmp_path_factory):
-    """A randomly initialised tiny PoseNet saved through detector.checkpoint (detects nothing useful)."""
+    """A randomly initialised tiny PointNet2 saved through detector.checkpoint (detects nothing useful)."""
     torch.set_num_threads(1)
     torch.manual_seed(0)
     cfg = model.ModelConfig.from_dict({**model.preset("cpu").to_dict(), **TINY_MODEL})
     with LabelFile(label_file) as lf:
         objects = object_table_dict(lf.objects)
-    net = model.PoseNet(cfg, num_classes=len(objects["ids"]))
+    net = model.PointNet2(cfg, num_classes=len(objects["ids"]))
     path = tmp_path_factory.mktemp("ckpt") / "random.pt"
     save_checkpoint(path, model=net, model_config=cfg, class_ids=objects["ids"], objects=objects, num_points=1024,
                     step=0, normalisation=NORMALISATION)
@@ -306,8 +307,8 @@ def test_eval_refuses_bad_options_in_one_line(random_checkpoint, label_file, tmp
 def test_eval_refuses_a_label_file_of_other_objects(random_checkpoint, label_file, tmp_path):
     """The model learned objects by id; a label file whose ids are other objects (another model under the same id)
     or none of the model's would be scored against the wrong models: refused. Its objects are the label file's."""
-    from detector.checkpoint import atomic_torch_save, read_checkpoint
     from detector.cli.app import app
+    from detector.training.checkpoint_file import atomic_torch_save, read_checkpoint
 
     payload = read_checkpoint(random_checkpoint)
     for name, change, words in [
@@ -378,7 +379,7 @@ def test_a_higher_scoring_far_pose_is_the_answer_for_add_while_f1_counts_every_d
     """Per frame, the first visible instance gets its true pose (score 0.5) and, scored higher (0.9), a pose 0.8
     diameters off: ADD takes the top-scoring pose, so that instance is wrong; F1 counts one TP and one FP."""
     import detector.evaluate as ev
-    from detector.pose import Detection
+    from detector.geometry.types import Detection
 
     with LabelFile(label_file) as lf:
         dia = {int(o): float(d) for o, d in zip(lf.objects.ids, lf.objects.diameters)}
@@ -464,8 +465,8 @@ def test_a_network_trained_without_colour_ignores_the_frame_colours(random_check
     from types import SimpleNamespace
 
     from detector.checkpoint import load_checkpoint
-    from detector.data import input_normalisation
-    from detector.infer import network_predictor
+    from detector.data.augment import input_normalisation
+    from detector.stage1.predictor import network_predictor
 
     ck = load_checkpoint(random_checkpoint)
     path = tmp_path / "none.pt"

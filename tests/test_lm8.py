@@ -13,7 +13,8 @@ from argen.cli.app import app as argen_app
 from argen.label import LabelConfig, LabelRequest, run_label
 from detector.checkpoint import load_checkpoint
 from detector.evaluate import evaluate
-from detector.infer import checkpoint_objects, checkpoint_pose_config, checkpoint_poser, network_predictor
+from detector.infer import checkpoint_geometry_config, checkpoint_objects, checkpoint_poser
+from detector.stage1.predictor import network_predictor
 
 CKPT = Path(__file__).resolve().parents[1] / "checkpoints" / "lm8.pt"
 
@@ -22,9 +23,9 @@ def test_shipped_model_is_small_and_complete():
     assert CKPT.is_file(), "checkpoints/lm8.pt is part of the repository"
     assert CKPT.stat().st_size <= 10 * 2**20
     ck = load_checkpoint(CKPT)
-    assert ck.pose_net is not None and len(ck.class_ids) == 8
+    assert ck.stage2_net is not None and len(ck.class_ids) == 8
     assert sorted(ck.objects["names"]) == ["ape", "can", "cat", "driller", "duck", "eggbox", "glue", "holepuncher"]
-    assert 0 < ck.pose_config["tau"] < 1
+    assert 0 < ck.geometry_config["tau"] < 1
 
 
 def test_shipped_model_finds_most_linemod_instances(lm_models, tmp_path):
@@ -35,7 +36,7 @@ def test_shipped_model_finds_most_linemod_instances(lm_models, tmp_path):
                            cfg=LabelConfig()))
     ck = load_checkpoint(CKPT)
     objects = checkpoint_objects(ck)[0]
-    cfg = checkpoint_pose_config(ck, None, True)
+    cfg = checkpoint_geometry_config(ck, None, True)
     s = evaluate(network_predictor(ck), tmp_path / "l.h5", tmp_path / "rep", icp=True, cfg=cfg,
                  poser=checkpoint_poser(ck, objects))
     errs = np.array([r["icp"] / r["diameter"] for r in s["instances"]])

@@ -1,4 +1,4 @@
-"""detector.loss: zero for a perfect prediction, hand-computed confidence targets, gradients only where due."""
+"""detector.stage1.loss: zero for a perfect prediction, hand-computed confidence targets, gradients only where due."""
 
 import math
 
@@ -6,7 +6,7 @@ import pytest
 import torch
 
 from detector.errors import DetectorError
-from detector.loss import LossConfig, confidence_target, multitask_loss
+from detector.stage1.loss import LossConfig, confidence_target, multitask_loss
 
 torch.set_num_threads(1)
 

@@ -7,8 +7,17 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from argen.models.objects import builtin_objects, load_objects
-from detector.metrics import (accuracy, accuracy_curve, add, adds, greedy_match, match_frame, pose_error, prf,
-                              top_k)
+from detector.evaluation.metrics import (
+    accuracy,
+    accuracy_curve,
+    add,
+    adds,
+    greedy_match,
+    match_frame,
+    pose_error,
+    prf,
+    top_k,
+)
 
 LM = Path(__file__).resolve().parents[2] / "shared/data/lm"
 

@@ -1,4 +1,4 @@
-"""detector.model: shapes and frames of the outputs, both index paths, learning on one cloud, input errors."""
+"""detector.stage1.network: shapes and frames of the outputs, both index paths, learning on one cloud, input errors."""
 
 import dataclasses
 
@@ -7,9 +7,9 @@ import pytest
 import torch
 
 from detector.errors import DetectorError
-from detector.loss import LossConfig, multitask_loss
-from detector.model import ModelConfig, PoseNet, preset
-from detector.ops import precompute_indices
+from detector.stage1.loss import LossConfig, multitask_loss
+from detector.stage1.network import ModelConfig, PointNet2, preset
+from detector.stage1.ops import precompute_indices
 
 torch.set_num_threads(1)
 
@@ -45,7 +45,7 @@ def two_clouds() -> torch.Tensor:
 
 def test_outputs_shapes_and_frames():
     torch.manual_seed(0)
-    model = PoseNet(TINY, num_classes=3).eval()
+    model = PointNet2(TINY, num_classes=3).eval()
     x = two_clouds()
     idx = batch_indices(x.numpy(), TINY)
     with torch.no_grad():
@@ -69,7 +69,7 @@ def test_outputs_shapes_and_frames():
 def test_torch_indices_equal_precomputed_indices(norm):
     cfg = dataclasses.replace(TINY, norm=norm)
     torch.manual_seed(1)
-    model = PoseNet(cfg, num_classes=1).eval()
+    model = PointNet2(cfg, num_classes=1).eval()
     x = two_clouds()
     with torch.no_grad():
         a, b = model(x, batch_indices(x.numpy(), cfg)), model(x)
@@ -85,7 +85,7 @@ def test_overfits_one_cloud():
     kp = idx["sample_0"][0]
     target = {"cls": torch.from_numpy(cls)[kp][None], "control_points": torch.from_numpy(cps)[kp][None]}
     torch.manual_seed(2)
-    model = PoseNet(TINY, num_classes=1)
+    model = PointNet2(TINY, num_classes=1)
     opt = torch.optim.Adam(model.parameters(), lr=3e-3)
     losses = []
     for _ in range(80):
@@ -105,7 +105,7 @@ def test_overfits_one_cloud():
 
 
 def test_bad_inputs_raise_detector_error():
-    model = PoseNet(TINY, num_classes=1)
+    model = PointNet2(TINY, num_classes=1)
     x = two_clouds()
     idx = batch_indices(x.numpy(), TINY)
     with pytest.raises(DetectorError, match=r"shape \(B, N, 9\)"):
@@ -131,8 +131,8 @@ def test_presets_and_config_round_trip():
     assert [m[-1] for m in paper.sa_mlps] == [32, 64, 128, 256, 512]
     assert [m[-1] for m in paper.fp_mlps] == [512, 512, 256, 256]
     cpu = preset("cpu")
-    assert cpu.npoints[0] == 1024 and sum(p.numel() for p in PoseNet(cpu, 1).parameters()) < \
-        sum(p.numel() for p in PoseNet(paper, 1).parameters())
+    assert cpu.npoints[0] == 1024 and sum(p.numel() for p in PointNet2(cpu, 1).parameters()) < \
+        sum(p.numel() for p in PointNet2(paper, 1).parameters())
     assert ModelConfig.from_dict(cpu.to_dict()) == cpu
     with pytest.raises(KeyError):
         preset("huge")

@@ -1,11 +1,11 @@
-"""detector.ops against brute-force references, and the numpy (loader) path against the torch path."""
+"""detector.stage1.ops against brute-force references, and the numpy (loader) path against the torch path."""
 
 import numpy as np
 import pytest
 import torch
 
 from detector.errors import DetectorError
-from detector.ops import (
+from detector.stage1.ops import (
     ball_query,
     compute_indices_torch,
     farthest_point_sample,

@@ -1,4 +1,4 @@
-"""Tests of detector.train and detector.checkpoint: schedule, data order, config, exact resume, checkpoints,
+"""Tests of detector.stage1.train and detector.checkpoint: schedule, data order, config, exact resume, checkpoints,
 and that the network learns a few frames."""
 
 from __future__ import annotations
@@ -12,19 +12,13 @@ import torch
 import yaml
 from test_data import TINY_MODEL, write_synthetic_h5
 
-from detector.checkpoint import load_checkpoint, read_checkpoint, save_checkpoint
-from detector.data import StreamBatchSampler
+from detector.checkpoint import load_checkpoint
+from detector.data.batches import StreamBatchSampler
 from detector.errors import DetectorError
-from detector.train import (
-    TrainConfig,
-    keypoint_targets,
-    load_config_file,
-    lr_factor,
-    make_config,
-    read_metrics,
-    total_steps,
-    train,
-)
+from detector.stage1.train import TrainConfig, keypoint_targets, load_config_file, make_config, total_steps, train
+from detector.training.checkpoint_file import read_checkpoint, save_checkpoint
+from detector.training.metrics_log import read_metrics
+from detector.training.schedule import lr_factor
 
 torch.set_num_threads(1)
 
@@ -164,9 +158,9 @@ def test_checkpoint_loads_for_inference_and_rejects_foreign_files(h5_path, tmp_p
     with pytest.raises(DetectorError, match="not found"):
         load_checkpoint(tmp_path / "missing.pt")
     # weights of a 3-class model under a 2-class config
-    from detector.model import PoseNet
+    from detector.stage1.network import PointNet2
 
-    save_checkpoint(tmp_path / "mismatch.pt", model=PoseNet(ck.model_config, num_classes=3),
+    save_checkpoint(tmp_path / "mismatch.pt", model=PointNet2(ck.model_config, num_classes=3),
                     model_config=ck.model_config, class_ids=[1, 5], objects=ck.objects, num_points=1024, step=0,
                     normalisation=ck.normalisation)
     with pytest.raises(DetectorError, match="do not match"):

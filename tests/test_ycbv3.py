@@ -10,7 +10,8 @@ import numpy as np
 from argen.label import LabelConfig, LabelRequest, run_label
 from detector.checkpoint import load_checkpoint
 from detector.evaluate import evaluate
-from detector.infer import checkpoint_objects, checkpoint_pose_config, checkpoint_poser, network_predictor
+from detector.infer import checkpoint_geometry_config, checkpoint_objects, checkpoint_poser
+from detector.stage1.predictor import network_predictor
 
 CKPT = Path(__file__).resolve().parents[1] / "checkpoints" / "ycbv3.pt"
 
@@ -19,7 +20,7 @@ def test_shipped_model_is_small_and_complete():
     assert CKPT.is_file(), "checkpoints/ycbv3.pt is part of the repository"
     assert CKPT.stat().st_size <= 10 * 2**20
     ck = load_checkpoint(CKPT)
-    assert ck.pose_net is not None and sorted(ck.class_ids) == [8, 14, 21]
+    assert ck.stage2_net is not None and sorted(ck.class_ids) == [8, 14, 21]
 
 
 def test_shipped_model_finds_the_objects_in_two_real_frames(ycbv_real, tmp_path):
@@ -27,7 +28,7 @@ def test_shipped_model_finds_the_objects_in_two_real_frames(ycbv_real, tmp_path)
                            cfg=LabelConfig(max_depth=1.5)))
     ck = load_checkpoint(CKPT)
     objects = checkpoint_objects(ck)[0]
-    cfg = checkpoint_pose_config(ck, None, True)
+    cfg = checkpoint_geometry_config(ck, None, True)
     s = evaluate(network_predictor(ck), tmp_path / "l.h5", tmp_path / "rep", icp=True, cfg=cfg, frames=[3, 4],
                  min_visib=0.0, poser=checkpoint_poser(ck, objects))
     errs = np.array([r["icp"] / r["diameter"] for r in s["instances"]])

@@ -4,7 +4,7 @@ A real RGB-D sensor's colour image is not the renderer's: it is taken by a secon
 the depth is off by a pixel or two, through a lens that blurs, and with sensor noise. Point features take their
 colour from the pixel at the depth pixel, so near object edges a real frame's points carry the colours of what
 lies beside them. Global colour changes (exposure, white balance, gamma) are left to the detector's training
-augmentation (``detector.crops.camera_colour``), which draws them anew in every epoch.
+augmentation (``detector.data.augment.camera_colour``), which draws them anew in every epoch.
 
 Only the colour image changes: depth, masks and ground truth stay exactly as rendered.
 """

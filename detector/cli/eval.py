@@ -44,17 +44,17 @@ def register(app: typer.Typer) -> None:
         """Evaluate a checkpoint on a label file: ADD/ADD-S accuracy, F1, BOP19 AR, timings, BOP results CSV."""
         # lazy: torch and open3d load in seconds; `detector --help` and the other commands do not need them
         from detector.checkpoint import load_checkpoint
-        from detector.data import open_label_file
+        from detector.data.frames import open_label_file
         from detector.evaluate import evaluate
-        from detector.infer import (check_label_objects, checkpoint_objects, checkpoint_pose_config, checkpoint_poser,
-                                    network_predictor)
+        from detector.infer import check_label_objects, checkpoint_geometry_config, checkpoint_objects, checkpoint_poser
+        from detector.stage1.predictor import network_predictor
 
         if frames is not None and frames < 1:
             raise DetectorError(f"--frames must be at least 1, got {frames}")
         if not 0 <= min_visib <= 1:
             raise DetectorError(f"--min-visib is a visible fraction in [0, 1], got {min_visib}")
         ckpt = load_checkpoint(checkpoint, device)
-        cfg = checkpoint_pose_config(ckpt, tau, icp, min_score)
+        cfg = checkpoint_geometry_config(ckpt, tau, icp, min_score)
         with open_label_file(data) as lf:
             n = lf.num_frames
             if n == 0:
@@ -94,11 +94,12 @@ def register(app: typer.Typer) -> None:
         """Predict the poses in one frame: poses.json (metres) and poses.png (3D boxes)."""
         # lazy: torch and open3d load in seconds; `detector --help` and the other commands do not need them
         from detector.checkpoint import load_checkpoint
-        from detector.infer import checkpoint_objects, checkpoint_pose_config, checkpoint_poser, network_predictor
+        from detector.infer import checkpoint_geometry_config, checkpoint_objects, checkpoint_poser
         from detector.predict import load_input, predict
+        from detector.stage1.predictor import network_predictor
 
         ckpt = load_checkpoint(checkpoint, device)
-        cfg = checkpoint_pose_config(ckpt, tau, icp, min_score)
+        cfg = checkpoint_geometry_config(ckpt, tau, icp, min_score)
         inp = load_input(input, K=K, depth_scale=depth_scale, camera=camera, rgb=rgb, seed=seed)
         objects, names = checkpoint_objects(ckpt)
         res = predict(network_predictor(ckpt, seed), inp, objects, out, cfg, names,

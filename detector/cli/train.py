@@ -20,11 +20,11 @@ def register(app: typer.Typer) -> None:
 def train_cmd(
     train_file: Path = typer.Argument(..., help="label file (HDF5) from `argen label`"),
     out: Path = typer.Option(..., "--out", help="run folder: two_stage.yaml, model.pt (the file eval and predict "
-                                                "take), detect/ and pose/ (each stage's config.yaml, metrics.csv, "
+                                                "take), stage1/ and stage2/ (each stage's config.yaml, metrics.csv, "
                                                 "last.pt); --preset cpu or paper: config.yaml, metrics.csv, last.pt"),
     val: Optional[Path] = typer.Option(None, "--val", help="validation label file: val_loss in metrics.csv and the "
                                                            "best weights in best.pt (two-stage: of stage 1, "
-                                                           "detect/best.pt)"),
+                                                           "stage1/best.pt)"),
     preset: Optional[str] = typer.Option(None, "--preset",
                                          help="two-stage (default: finds objects, then their pose in crops), or the "
                                               "paper's single-shot network: cpu or paper"),
@@ -51,13 +51,12 @@ def train_cmd(
     """Train a detector on a label file; checkpoints and metrics go to --out.
 
     The default two-stage model writes --out/model.pt (both stages; the file eval and predict take) after
-    training --out/detect (stage 1) and --out/pose (stage 2); set their lengths with --set stage1.steps=N
-    --set stage2.steps=M. --resume continues it, also with --set of settings that do not change the result
+    training --out/stage1 and --out/stage2; set their lengths with --set stage1.steps=N --set stage2.steps=M. --resume continues it, also with --set of settings that do not change the result
     (e.g. --set stage2.cache_mb=256). --preset cpu or paper trains the paper's single network (--out/last.pt).
     """
     # lazy: torch loads in seconds; `detector --help` and the other commands do not need it
-    from detector import distributed
-    from detector.train import load_config_file, make_config, train
+    from detector.stage1.train import load_config_file, make_config, train
+    from detector.training import distributed
 
     if preset is not None:
         two_stage = preset == TWO_STAGE

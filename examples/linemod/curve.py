@@ -3,7 +3,7 @@
     .venv/bin/python examples/linemod/curve.py runs/lm8 data/lm_test.h5 --out docs/img/time_to_accuracy.png
 
 RUN is a two-stage run folder trained with ``--set stage2.keep_every=N`` (``detector train``), so that
-``RUN/pose/`` holds stage-2 snapshots ``step_NNNNNN.pt`` beside ``last.pt``, and ``RUN/model.pt`` exists (the
+``RUN/stage2/`` holds stage-2 snapshots ``step_NNNNNN.pt`` beside ``last.pt``, and ``RUN/model.pt`` exists (the
 run finished). Each snapshot is put together with the run's stage 1 and the inference settings of ``RUN/model.pt``
 into a model file and evaluated on LABELS (``detector eval`` with ICP; the first ``--frames`` frames). A point's
 minutes are stage 1's whole training time plus stage 2's up to the snapshot, both summed from the runs'
@@ -31,36 +31,35 @@ def train_seconds(metrics: Path, upto: int | None = None) -> float:
 def curve_points(run: Path, labels: Path, frames: int | None, stage1_minutes: float) -> list[dict]:
     """One point per stage-2 snapshot of ``run`` (and its final weights): step, minutes, ADD(-S)@10 % without and
     with ICP (percent) on ``labels``."""
-    from detector.checkpoint import load_checkpoint, read_checkpoint, save_two_stage
-    from detector.data import open_label_file
+    from detector.checkpoint import load_checkpoint, save_two_stage
+    from detector.data.frames import open_label_file
     from detector.evaluate import evaluate
-    from detector.infer import (
-        checkpoint_objects,
-        checkpoint_pose_config,
-        checkpoint_poser,
-        network_predictor,
-    )
+    from detector.infer import checkpoint_geometry_config, checkpoint_objects, checkpoint_poser
+    from detector.stage1.predictor import network_predictor
+    from detector.training.checkpoint_file import read_checkpoint
+    from detector.two_stage import stage_dirs
 
     model = read_checkpoint(run / "model.pt")
-    detect = read_checkpoint(run / "detect" / "last.pt")
+    d1, d2 = stage_dirs(run)
+    stage1_part = read_checkpoint(d1 / "last.pt")
     stage1 = 60.0 * stage1_minutes
-    snaps = sorted((run / "pose").glob("step_*.pt")) + [run / "pose" / "last.pt"]
+    snaps = sorted(d2.glob("step_*.pt")) + [d2 / "last.pt"]
     with open_label_file(labels) as lf:
         n = lf.num_frames if frames is None else min(frames, lf.num_frames)
     points, seen = [], set()
     with tempfile.TemporaryDirectory() as tmp:
         for snap in snaps:
-            part = read_checkpoint(snap)["pose"]
+            part = read_checkpoint(snap)["stage2"]
             if part["step"] in seen:
                 continue
             seen.add(part["step"])
-            path = save_two_stage(Path(tmp) / "model.pt", detect,
-                                  {**part, "infer_config": model["pose"]["infer_config"]}, model["extra"])
+            path = save_two_stage(Path(tmp) / "model.pt", stage1_part,
+                                  {**part, "infer_config": model["stage2"]["infer_config"]}, model["extra"])
             ckpt = load_checkpoint(path)
             s = evaluate(network_predictor(ckpt), labels, Path(tmp) / "report", icp=True,
-                         cfg=checkpoint_pose_config(ckpt, None, True), frames=list(range(n)),
+                         cfg=checkpoint_geometry_config(ckpt, None, True), frames=list(range(n)),
                          poser=checkpoint_poser(ckpt, checkpoint_objects(ckpt)[0]), bop19=False)  # ADD only
-            minutes = (stage1 + train_seconds(run / "pose" / "metrics.csv", int(part["step"]))) / 60.0
+            minutes = (stage1 + train_seconds(d2 / "metrics.csv", int(part["step"]))) / 60.0
             points.append({"step": int(part["step"]), "minutes": round(minutes, 2),
                            "noicp": round(100 * s["mean"]["noicp"]["0.10"], 1),
                            "icp": round(100 * s["mean"]["icp"]["0.10"], 1)})
@@ -96,9 +95,11 @@ def main() -> None:
     ap.add_argument("--out", type=Path, required=True, help="the plot (.png); the points go to the same name .json")
     ap.add_argument("--frames", type=int, default=None, help="evaluate only the first N frames")
     ap.add_argument("--stage1-minutes", type=float, default=None,
-                    help="stage 1's training minutes (default: summed from RUN/detect/metrics.csv)")
+                    help="stage 1's training minutes (default: summed from RUN/stage1/metrics.csv)")
     a = ap.parse_args()
-    log = a.run / "detect" / "metrics.csv"
+    from detector.two_stage import stage_dirs
+
+    log = stage_dirs(a.run)[0] / "metrics.csv"
     if a.stage1_minutes is None and not log.is_file():
         raise SystemExit(f"curve.py: {log} is missing; give --stage1-minutes")
     stage1 = a.stage1_minutes if a.stage1_minutes is not None else train_seconds(log) / 60.0

@@ -93,7 +93,7 @@ def timing(rep: dict) -> str:
 
 
 def training(run: Path) -> str:
-    from detector.train import read_metrics
+    from detector.training.metrics_log import read_metrics
 
     rows = read_metrics(run / "metrics.csv")
     last = rows[-50:]

@@ -17,6 +17,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import cKDTree
 
+
 THRESHOLDS = (0.10, 0.15, 0.30)
 
 

@@ -28,13 +28,11 @@ from pykdtree.kdtree import KDTree
 
 from detector.errors import DetectorError
 
+
 #: Added to 3-NN distances before inverting them (metres).
 INTERP_EPS = 1e-8
 
 Spec = tuple[int, float, int]
-
-
-# ------------------------------------------------------------------------------------------------ numpy path
 
 
 def check_specs(num_points: int, specs: list[Spec]) -> None:
@@ -123,9 +121,6 @@ def precompute_indices(xyz: np.ndarray, specs: list[Spec]) -> dict[str, np.ndarr
     for level in range(1, len(specs)):
         out[f"interp_{level}_idx"], out[f"interp_{level}_w"] = three_nn_numpy(levels[level], levels[level + 1])
     return out
-
-
-# ------------------------------------------------------------------------------------------------ torch path
 
 
 def gather(values: torch.Tensor, idx: torch.Tensor) -> torch.Tensor:

@@ -1,9 +1,9 @@
-"""Stage-2 training: the crop network (:mod:`detector.cropnet`) on ground-truth-centred, jittered crops.
+"""Stage-2 training: the crop network (:mod:`detector.stage2.network`) on ground-truth-centred, jittered crops.
 
 A run folder holds ``config.yaml``, ``metrics.csv`` (one row per step) and ``last.pt`` (every
 ``checkpoint_every`` steps and at the end, with the optimiser state for ``resume``). Items are pure functions of
 (seed, epoch, frame), batches are ``batch_frames`` frames' crops, so a resumed run repeats the uninterrupted
-one. The learning-rate schedule is :func:`detector.train.lr_factor`'s. CPU or CUDA, the same code.
+one. The learning-rate schedule is :func:`detector.training.schedule.lr_factor`'s. CPU or CUDA, the same code.
 """
 
 from __future__ import annotations
@@ -17,37 +17,37 @@ import torch
 import yaml
 from tqdm import tqdm
 
-from detector.checkpoint import FORMAT, atomic_torch_save, read_checkpoint
 from detector.config import config_from_dict, config_to_dict, set_dotted
-from detector.cropnet import CropNet, CropNetConfig, crop_loss
-from detector.crops import COLOUR_MODES, CropConfig
-from detector.data import CropDataset, input_normalisation, StreamBatchSampler, collate_crops
+from detector.data.augment import COLOUR_MODES, input_normalisation
+from detector.data.batches import StreamBatchSampler
 from detector.errors import DetectorError
-from detector.train import (
-    MetricsLog,
-    _worker_init,
-    loader_generator,
-    lr_factor,
-    resolve_device,
-    restore_state,
-    rng_state,
-    run_checkpoint,
-)
+from detector.stage2.crops import CropConfig
+from detector.stage2.dataset import CropDataset, collate_crops
+from detector.stage2.network import CropNet, CropNetConfig, crop_loss
+from detector.training.checkpoint_file import FORMAT, TWO_STAGE_VERSION, atomic_torch_save, read_checkpoint
+from detector.training.devices import loader_generator, resolve_device, worker_init
+from detector.training.metrics_log import MetricsLog
+from detector.training.optim import optimiser_step
+from detector.training.resume import restore_state, rng_state, run_checkpoint
+from detector.training.schedule import lr_factor
 
-POSE_KIND = "crop-pose"
-POSE_METRICS = ["step", "epoch", "loss", "fg", "coord", "fg_acc", "crops", "lr", "steps_per_s"]
-#: PoseTrainConfig keys that may differ when resuming: they do not change the steps' numbers (``steps`` stretches
+
+STAGE2_KIND = "crop-pose"
+
+STAGE2_METRICS = ["step", "epoch", "loss", "fg", "coord", "fg_acc", "crops", "lr", "steps_per_s"]
+
+#: Stage2TrainConfig keys that may differ when resuming: they do not change the steps' numbers (``steps`` stretches
 #: or shortens the schedule from the step reached; the crop cache holds the same crops whatever its size).
-POSE_RESUME_FREE_KEYS = frozenset({"steps", "checkpoint_every", "keep_every", "num_workers", "cache_mb", "device"})
+STAGE2_RESUME_FREE_KEYS = frozenset({"steps", "checkpoint_every", "keep_every", "num_workers", "cache_mb", "device"})
 
 
 @dataclass
-class PoseTrainConfig:
+class Stage2TrainConfig:
     """A stage-2 run. steps: optimiser steps; batch_frames: frames per batch (each gives its instances' crops);
     keep_every: besides ``last.pt``, keep the weights every this many steps as ``step_NNNNNN.pt`` (0 = none;
     each is a stage-2 checkpoint without the optimiser state, about 1 MB, e.g. for a time-to-accuracy curve);
     cache_mb: the data process keeps the frames' crop regions in memory up to this many MB and cuts later epochs'
-    crops from there (:class:`detector.data.CropDataset`; the same crops; about 0.4 MB a frame of a 30000-point label
+    crops from there (:class:`detector.stage2.dataset.CropDataset`; the same crops; about 0.4 MB a frame of a 30000-point label
     file of the linemod template; 0 = read every frame from the file each time)."""
 
     crop: CropConfig = field(default_factory=CropConfig)
@@ -71,16 +71,16 @@ class PoseTrainConfig:
     seed: int = 0
 
 
-def pose_payload(net: CropNet, cfg: PoseTrainConfig, class_ids: list[int], objects: dict, step: int,
+def stage2_payload(net: CropNet, cfg: Stage2TrainConfig, class_ids: list[int], objects: dict, step: int,
                  train_state: dict | None = None) -> dict:
     """The stage-2 part of a checkpoint: weights, configs, classes and the object table (plain values)."""
-    return {"kind": POSE_KIND, "model_state": {k: v.detach().cpu() for k, v in net.state_dict().items()},
+    return {"kind": STAGE2_KIND, "model_state": {k: v.detach().cpu() for k, v in net.state_dict().items()},
             "net_config": cfg.net.to_dict(), "crop_config": cfg.crop.to_dict(), "class_ids": list(class_ids),
             "objects": objects, "normalisation": input_normalisation(cfg.crop.colour), "step": int(step),
             "train_config": config_to_dict(cfg), "train_state": train_state}
 
 
-def forward_pose_loss(net: torch.nn.Module, batch: dict, cfg: PoseTrainConfig, device: torch.device
+def forward_stage2_loss(net: torch.nn.Module, batch: dict, cfg: Stage2TrainConfig, device: torch.device
                       ) -> tuple[torch.Tensor, dict[str, float]]:
     """Loss of a batch of crops and its parts, plus the foreground accuracy and the number of crops."""
     feats, cls = batch["features"].to(device), batch["cls"].to(device)
@@ -92,7 +92,7 @@ def forward_pose_loss(net: torch.nn.Module, batch: dict, cfg: PoseTrainConfig, d
                   "fg_acc": float(acc), "crops": int(len(cls))}
 
 
-def train_pose(cfg: PoseTrainConfig, train_path: str | Path, out_dir: str | Path, resume: bool = False,
+def train_stage2(cfg: Stage2TrainConfig, train_path: str | Path, out_dir: str | Path, resume: bool = False,
                progress: bool = True, stop_after: int | None = None, log_every: int = 0) -> dict:
     """Train the stage-2 crop network on a label file; checkpoints and metrics in ``out_dir``.
 
@@ -113,28 +113,27 @@ def train_pose(cfg: PoseTrainConfig, train_path: str | Path, out_dir: str | Path
         start = 0
         if resume:
             payload = read_checkpoint(last_path, device)
-            part = payload.get("pose") or {}
+            part = payload.get("stage2") or {}
             state = part.get("train_state") or {}
             if "optimizer" not in state:
                 raise DetectorError(f"{last_path} holds no stage-2 training state to resume from")
             start = int(part["step"])
             restore_state(net, opt, sched, part["model_state"], {**state, "config": saved_settings(state["config"])},
-                          cfg, last_path, device, start, cfg.steps, POSE_RESUME_FREE_KEYS)
+                          cfg, last_path, device, start, cfg.steps, STAGE2_RESUME_FREE_KEYS)
         out_dir.mkdir(parents=True, exist_ok=True)
         (out_dir / "config.yaml").write_text(yaml.safe_dump(config_to_dict(cfg), sort_keys=False))
-        log = MetricsLog(out_dir / "metrics.csv", keep_until=start if resume else None, fields=POSE_METRICS)
+        log = MetricsLog(out_dir / "metrics.csv", keep_until=start if resume else None, fields=STAGE2_METRICS)
 
         def save(step: int) -> None:
             state = {"optimizer": opt.state_dict(), "scheduler": sched.state_dict(), "rng": rng_state(device),
                      "config": config_to_dict(cfg)}
-            atomic_torch_save({"format": FORMAT, "version": 2, "pose": pose_payload(net, cfg, ds.class_ids,
-                                                                                   ds.objects, step, state)},
-                              last_path)
+            atomic_torch_save({"format": FORMAT, "version": TWO_STAGE_VERSION,
+                               "stage2": stage2_payload(net, cfg, ds.class_ids, ds.objects, step, state)}, last_path)
 
         sampler = StreamBatchSampler(len(ds), cfg.batch_frames, cfg.seed, start=start)
         loader = torch.utils.data.DataLoader(ds, batch_sampler=sampler, collate_fn=collate_crops,
                                              num_workers=cfg.num_workers, generator=loader_generator(cfg.seed),
-                                             worker_init_fn=_worker_init)
+                                             worker_init_fn=worker_init)
         batches = iter(loader)
         bar = tqdm(total=cfg.steps, initial=start, disable=not progress or log_every > 0, desc="train stage 2")
         end = cfg.steps if stop_after is None else min(cfg.steps, stop_after)
@@ -153,13 +152,8 @@ def train_pose(cfg: PoseTrainConfig, train_path: str | Path, out_dir: str | Path
                     continue
                 empty = 0
                 lr = opt.param_groups[0]["lr"]
-                loss, parts = forward_pose_loss(net, batch, cfg, device)
-                opt.zero_grad(set_to_none=True)
-                loss.backward()
-                if cfg.grad_clip > 0:
-                    torch.nn.utils.clip_grad_norm_(net.parameters(), cfg.grad_clip)
-                opt.step()
-                sched.step()
+                loss, parts = forward_stage2_loss(net, batch, cfg, device)
+                optimiser_step(loss, net, opt, sched, cfg.grad_clip)
                 step += 1
                 now = time.perf_counter()
                 row = {"step": step, "epoch": f"{step * cfg.batch_frames / len(ds):.4f}", **parts, "lr": lr,
@@ -175,7 +169,7 @@ def train_pose(cfg: PoseTrainConfig, train_path: str | Path, out_dir: str | Path
                 if step % cfg.checkpoint_every == 0 or step == end:
                     save(step)
                 if cfg.keep_every > 0 and step % cfg.keep_every == 0:
-                    atomic_torch_save({"format": FORMAT, "version": 2, "pose": pose_payload(
+                    atomic_torch_save({"format": FORMAT, "version": TWO_STAGE_VERSION, "stage2": stage2_payload(
                         net, cfg, ds.class_ids, ds.objects, step)}, out_dir / f"step_{step:06d}.pt")
         finally:
             del batches
@@ -196,14 +190,14 @@ def saved_settings(saved: dict) -> dict:
     return saved
 
 
-def load_pose_config(data: dict | None, overrides: dict | None = None) -> PoseTrainConfig:
-    """A checked PoseTrainConfig from a mapping (YAML) with flat dotted ``overrides`` ("crop.radius": 0.8)."""
-    d = config_to_dict(PoseTrainConfig())
+def load_stage2_config(data: dict | None, overrides: dict | None = None) -> Stage2TrainConfig:
+    """A checked Stage2TrainConfig from a mapping (YAML) with flat dotted ``overrides`` ("crop.radius": 0.8)."""
+    d = config_to_dict(Stage2TrainConfig())
     for k, v in (data or {}).items():
         set_dotted(d, k, v)
     for k, v in (overrides or {}).items():
         set_dotted(d, k, v)
-    cfg = config_from_dict(PoseTrainConfig, d)
+    cfg = config_from_dict(Stage2TrainConfig, d)
     if cfg.steps < 1 or cfg.batch_frames < 1 or cfg.lr <= 0 or cfg.crop.num_points < 3 or cfg.crop.radius <= 0:
         raise DetectorError("stage-2 config: steps, batch_frames, lr, crop.num_points and crop.radius must be positive")
     if cfg.cache_mb < 0:

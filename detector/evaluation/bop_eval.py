@@ -1,6 +1,6 @@
 """BOP19 Average Recall of pose estimates on a BOP dataset (argen's or a real one), as the BOP toolkit's
 ``eval_bop19_pose.py`` computes it, without the toolkit: the dataset is read through :mod:`argen.bop`, the models
-rendered with argen's renderer (:mod:`argen.sim.render`, pyrender + OSMesa) and scored by :mod:`detector.bop19`.
+rendered with argen's renderer (:mod:`argen.sim.render`, pyrender + OSMesa) and scored by :mod:`detector.evaluation.bop19`.
 
 The protocol, step by step:
 
@@ -30,13 +30,15 @@ import numpy as np
 from tqdm import tqdm
 
 from argen import bop
-from detector import bop19
 from detector.errors import DetectorError, argen_errors
-from detector.metrics import top_k
+from detector.evaluation import bop19
+from detector.evaluation.metrics import top_k
+
 
 #: The toolkit's keys of ``scores_bop19.json``.
 SCORE_KEYS = ("bop19_average_recall", "bop19_average_recall_vsd", "bop19_average_recall_mssd",
               "bop19_average_recall_mspd")
+
 #: Where the toolkit's MSPD thresholds hold: an image 640 pixels wide.
 MSPD_REFERENCE_WIDTH = 640.0
 

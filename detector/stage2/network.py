@@ -1,6 +1,6 @@
-"""Stage 2 network: per-point foreground and model coordinates in an object-centred crop.
+"""Stage 2's network: per-point foreground and model coordinates in an object-centred crop.
 
-Input: a crop (B, n, 9) from :func:`detector.crops.crop_input` and the class index of each crop (B,). The
+Input: a crop (B, n, 9) from :func:`detector.stage2.crops.crop_input` and the class index of each crop (B,). The
 class enters as a one-hot feature and picks the output head, so one network serves all objects. Layers:
 a per-point MLP, two edge-convolutions over the k nearest neighbours in the crop (``relu(LN(max_j W [x_i, x_j -
 x_i]))`` over the neighbours j of i), a global max-pooled feature concatenated to every point, and a per-point MLP
@@ -163,7 +163,7 @@ def crop_loss(out: dict[str, torch.Tensor], fg: torch.Tensor, coords: torch.Tens
     return bce + w_coord * coord, {"fg": bce.detach(), "coord": coord.detach()}
 
 
-def build_pose_net(part: dict, where: str, device: torch.device | str = "cpu") -> CropNet:
+def build_stage2_net(part: dict, where: str, device: torch.device | str = "cpu") -> CropNet:
     """The CropNet of a checkpoint's stage-2 part with its weights; a mismatch is a :class:`DetectorError`."""
     try:
         net = CropNet(CropNetConfig.from_dict(part["net_config"]), len(part["class_ids"]))

@@ -1,4 +1,5 @@
-"""The paper's multi-task PointNet++ (PoseNet): an input SA stage, 4 SA and 4 FP layers, three per-keypoint heads.
+"""Stage 1's network, the paper's multi-task PointNet++ (:class:`PointNet2`): an input SA stage, 4 SA and 4 FP layers,
+three per-keypoint heads.
 
 Shapes (B batch, N input points, K keypoints of the input SA stage, C object classes):
 
@@ -31,8 +32,8 @@ Each SA layer gathers, around each sampled centroid, the neighbours' relative co
 applies a shared MLP (1x1 conv + norm + ReLU) and max-pools over the neighbours. Each FP layer
 interpolates the coarser level's features onto the finer level (3-NN inverse distance), concatenates the
 finer level's own features (skip) and applies a shared MLP. Sampling and neighbour indices come from the
-data loader (:func:`detector.ops.precompute_indices`, batched) or, when ``indices`` is None, are computed
-in torch on the model's device (:func:`detector.ops.compute_indices_torch`).
+data loader (:func:`detector.stage1.ops.precompute_indices`, batched) or, when ``indices`` is None, are computed
+in torch on the model's device (:func:`detector.stage1.ops.compute_indices_torch`).
 """
 
 from __future__ import annotations
@@ -45,14 +46,15 @@ from torch import nn
 
 from detector.config import NETWORK_PRESETS, load_preset
 from detector.errors import DetectorError
-from detector.ops import compute_indices_torch, gather, group, three_interpolate
+from detector.stage1.ops import compute_indices_torch, gather, group, three_interpolate
+
 
 NUM_CONTROL_POINTS = 9
 
 
 @dataclass
 class ModelConfig:
-    """Sizes of a PoseNet; level l of ``npoints``/``radii``/``nsamples``/``sa_mlps`` is SA layer l (0 = input stage)."""
+    """Sizes of a PointNet2; level l of ``npoints``/``radii``/``nsamples``/``sa_mlps`` is SA layer l (0 = input stage)."""
 
     in_channels: int = 9
     npoints: list[int] = dataclasses.field(default_factory=lambda: [4096, 1024, 512, 256, 128])
@@ -88,7 +90,7 @@ class ModelConfig:
             raise ValueError(f"norm must be 'gn' or 'bn', got '{self.norm}'")
 
     def sampling_specs(self) -> list[tuple[int, float, int]]:
-        """(npoint, radius, nsample) per SA level, for :mod:`detector.ops`."""
+        """(npoint, radius, nsample) per SA level, for :mod:`detector.stage1.ops`."""
         return list(zip(self.npoints, self.radii, self.nsamples))
 
     def to_dict(self) -> dict:
@@ -164,13 +166,13 @@ def head(in_ch: int, hidden: int, out_ch: int, norm: str) -> nn.Sequential:
     return nn.Sequential(*shared_mlp(in_ch, [hidden], norm, dims=1), nn.Conv1d(hidden, out_ch, 1))
 
 
-class PoseNet(nn.Module):
+class PointNet2(nn.Module):
     """Multi-task PointNet++: per keypoint class logits, 9 control-point offsets and a confidence."""
 
     def __init__(self, cfg: ModelConfig, num_classes: int):
         super().__init__()
         if num_classes < 1:
-            raise DetectorError(f"PoseNet needs at least one object class, got {num_classes}")
+            raise DetectorError(f"PointNet2 needs at least one object class, got {num_classes}")
         self.cfg, self.num_classes = cfg, num_classes
         self.specs = cfg.sampling_specs()
         chans = [cfg.in_channels]
@@ -205,7 +207,7 @@ class PoseNet(nn.Module):
         bsz = features.shape[0]
         for key, shape in self.index_shapes(features.shape[1]).items():
             if key not in indices:
-                raise DetectorError(f"indices lack '{key}' (expected the keys of detector.ops.precompute_indices)")
+                raise DetectorError(f"indices lack '{key}' (expected the keys of detector.stage1.ops.precompute_indices)")
             got = indices[key]
             if tuple(got.shape) != (bsz, *shape):
                 raise DetectorError(f"indices['{key}'] must have shape {(bsz, *shape)}, got {tuple(got.shape)}")
@@ -213,7 +215,7 @@ class PoseNet(nn.Module):
                 raise DetectorError(f"indices['{key}'] must be int64, got {got.dtype}")
 
     def index_shapes(self, num_points: int) -> dict[str, tuple[int, ...]]:
-        """Expected per-cloud shape of every index array (see :func:`detector.ops.precompute_indices`)."""
+        """Expected per-cloud shape of every index array (see :func:`detector.stage1.ops.precompute_indices`)."""
         shapes: dict[str, tuple[int, ...]] = {}
         for level, (npoint, _, nsample) in enumerate(self.specs):
             shapes[f"sample_{level}"] = (npoint,)

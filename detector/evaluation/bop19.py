@@ -12,7 +12,7 @@ The three errors of one estimated pose (R_est, t_est) against one ground-truth p
 Average Recall: per threshold of correctness, the estimates are matched greedily by score to the valid ground truth
 (each instance once, the closest free one under the threshold), recall = matched / valid instances; AR is the mean
 recall over the thresholds (and for VSD over the taus too); the BOP19 score is the mean of the three ARs. Which
-estimates and instances take part (the n_top rule, the targets) is the caller's (:mod:`detector.bop_eval`).
+estimates and instances take part (the n_top rule, the targets) is the caller's (:mod:`detector.evaluation.bop_eval`).
 
 BOP's own units are millimetres; here everything is metres (VSD's delta 15 mm is 0.015) and pixels.
 """
@@ -23,16 +23,21 @@ import math
 
 import numpy as np
 
-from detector.metrics import greedy_match, transform
+from detector.evaluation.metrics import greedy_match, transform
+
 
 #: VSD's visibility tolerance delta, metres (BOP19: 15 mm for every dataset but ITODD's 5 mm).
 VSD_DELTA = 0.015
+
 #: VSD's misalignment tolerances tau, fractions of the object diameter (BOP19: 0.05, 0.10, ..., 0.50).
 VSD_TAUS = np.round(np.arange(1, 11) * 0.05, 2)
+
 #: Thresholds of correctness: VSD (an error in [0, 1]) and MSSD (fraction of the diameter): 0.05 ... 0.5.
 VSD_THRESHOLDS = MSSD_THRESHOLDS = np.round(np.arange(1, 11) * 0.05, 2)
+
 #: MSPD thresholds, pixels at an image width of 640 (scaled by width / 640 for other widths): 5 ... 50.
 MSPD_THRESHOLDS = np.arange(1, 11) * 5.0
+
 #: BOP's max_sym_disc_step: the largest fraction of the diameter that the vertex furthest from a continuous
 #: symmetry axis may travel between two of its discretised rotations.
 MAX_SYM_DISC_STEP = 0.01

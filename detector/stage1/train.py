@@ -1,5 +1,6 @@
-"""Training loop: AdamW with a warm-up schedule, optional segmentation-only pre-training, validation,
-atomic checkpoints (``last.pt`` every N steps, ``best.pt`` on validation loss), ``metrics.csv``, exact resume.
+"""Training stage 1 (or the paper's single network): AdamW with a warm-up schedule (:mod:`detector.training`), optional
+segmentation-only pre-training, validation, atomic checkpoints (``last.pt`` every N steps, ``best.pt`` on validation
+loss), ``metrics.csv``, exact resume.
 
 A run folder holds ``config.yaml`` (the resolved :class:`TrainConfig`), ``metrics.csv`` (one row per step),
 ``last.pt`` and, with a validation file, ``best.pt``. Resuming reloads model, optimiser, scheduler, torch
@@ -7,7 +8,7 @@ RNG and the data position; items are pure functions of (seed, epoch, frame), so 
 the uninterrupted one step for step. Resuming with more ``steps`` is allowed (the schedule is a function
 of (step, total), so it stretches from there); other settings must stay those of the run.
 
-Under ``torchrun`` (:mod:`detector.distributed`) the same function trains data-parallel with DDP:
+Under ``torchrun`` (:mod:`detector.training.distributed`) the same function trains data-parallel with DDP:
 ``batch_size`` is the global batch, split over the processes, and the loss is normalised over the global
 batch, so N processes follow the single-process run up to floating-point order; rank 0 alone writes the
 run folder and validates. With ``model.norm=bn`` each process normalises over its own share of the batch.
@@ -20,7 +21,6 @@ it gives no step counts or learning rate, these are ours).
 
 from __future__ import annotations
 
-import csv
 import dataclasses
 import math
 import time
@@ -33,16 +33,22 @@ import torch
 import yaml
 from tqdm import tqdm
 
-from detector import distributed
-from detector.checkpoint import read_checkpoint, save_checkpoint
-from detector.config import (NETWORK_PRESETS, config_from_dict, config_to_dict, load_preset, load_yaml,
-                             set_dotted)
-from detector.crops import COLOUR_MODES
-from detector.data import PointDataset, StreamBatchSampler, collate
-from detector.distributed import DistContext
+from detector.config import NETWORK_PRESETS, config_from_dict, config_to_dict, load_preset, load_yaml, set_dotted
+from detector.data.augment import COLOUR_MODES
+from detector.data.batches import StreamBatchSampler, collate
 from detector.errors import DetectorError
-from detector.loss import LossConfig, multitask_loss
-from detector.model import ModelConfig, PoseNet, preset
+from detector.stage1.dataset import PointDataset
+from detector.stage1.loss import LossConfig, multitask_loss
+from detector.stage1.network import ModelConfig, PointNet2, preset
+from detector.training import distributed
+from detector.training.checkpoint_file import read_checkpoint, save_checkpoint
+from detector.training.devices import loader_generator, resolve_device, worker_init
+from detector.training.distributed import DistContext
+from detector.training.metrics_log import MetricsLog
+from detector.training.optim import optimiser_step
+from detector.training.resume import restore_state, rng_state, run_checkpoint
+from detector.training.schedule import lr_factor
+
 
 #: Keys of a batch that are labels or bookkeeping; every other key is a sampling index for the network.
 LABEL_KEYS = ("features", "cls", "instance", "control_points", "frame", "point_index")
@@ -61,7 +67,7 @@ METRIC_FIELDS = ["step", "epoch", "phase", "loss", "cls", "offset", "conf", "lr"
 class TrainConfig:
     """Everything that defines a training run (the model is ``preset`` with ``model`` overrides)."""
 
-    preset: str = "cpu"  # model preset of detector.model.preset: "paper" or "cpu"
+    preset: str = "cpu"  # model preset of detector.stage1.network.preset: "paper" or "cpu"
     model: dict = field(default_factory=dict)  # ModelConfig field overrides
     num_points: int = 4096  # points sampled per frame (>= the first stage's keypoints)
     steps: int | None = 2000  # optimiser steps in all (segmentation pre-training included)
@@ -76,7 +82,7 @@ class TrainConfig:
     seg_pretrain_steps: int = 0  # first steps train the segmentation head only (the paper's pre-training)
     loss: LossConfig = field(default_factory=LossConfig)
     augment: bool = True
-    colour: str = "light"  # colour input: light (brightness +-15 %) | camera (detector.crops.camera_colour) | none
+    colour: str = "light"  # colour augmentation: light (brightness +-15 %) | camera (detector.data.augment.camera_colour)
     class_ids: list[int] | None = None  # object ids to learn; None = all objects of the training file
     checkpoint_every: int = 200
     val_every: int = 200
@@ -85,8 +91,6 @@ class TrainConfig:
     device: str = "auto"  # auto | cpu | cuda
     indices: str = "auto"  # where sampling indices are computed: auto | loader | model
     seed: int = 0
-
-
 
 
 @dataclass
@@ -110,9 +114,6 @@ class TrainSummary:
         if self.val:
             txt += f", val loss {self.val['loss']:.4f}, val accuracy {self.val['acc']:.3f}"
         return txt + f"; checkpoint {self.checkpoint}"
-
-
-# ------------------------------------------------------------------------------------------------- config
 
 
 def make_config(preset: str = "cpu", overrides: dict[str, Any] | None = None, base: TrainConfig | None = None
@@ -179,38 +180,11 @@ def build_model_config(cfg: TrainConfig):
         raise DetectorError(f"config: bad model options ({exc})") from None
 
 
-def resolve_device(name: str) -> torch.device:
-    """``auto`` -> cuda when available else cpu; asking for cuda without one is a DetectorError."""
-    if name == "cuda" and not torch.cuda.is_available():
-        raise DetectorError("--device cuda: no CUDA device is available")
-    return torch.device("cuda" if name == "cuda" or (name == "auto" and torch.cuda.is_available()) else "cpu")
-
-
 def total_steps(cfg: TrainConfig, num_frames: int) -> int:
     """Optimiser steps of the run: ``steps``, or ``ceil(epochs * frames / batch_size)``."""
     if cfg.steps is not None:
         return cfg.steps
     return max(1, math.ceil(cfg.epochs * num_frames / cfg.batch_size))
-
-
-def lr_factor(step: int, total: int, cfg: TrainConfig) -> float:
-    """Learning-rate multiplier at ``step`` (0-based) of ``total``: warm-up, then the schedule's decay."""
-    warm = min(cfg.warmup_steps, max(total - 1, 0))
-    if cfg.schedule == "onecycle":  # cosine ramp from lr/25 to lr, cosine decay to lr/1e4 (torch OneCycleLR shape)
-        lo, end = 1 / 25, 1e-4
-        if step < warm:
-            return lo + (1 - lo) * 0.5 * (1 - math.cos(math.pi * step / warm))
-        frac = (step - warm) / max(total - warm, 1)
-        return end + (1 - end) * 0.5 * (1 + math.cos(math.pi * min(frac, 1.0)))
-    if step < warm:
-        return (step + 1) / (warm + 1)
-    if cfg.schedule == "constant":
-        return 1.0
-    frac = (step - warm) / max(total - warm, 1)
-    return cfg.min_lr_ratio + (1 - cfg.min_lr_ratio) * 0.5 * (1 + math.cos(math.pi * min(frac, 1.0)))
-
-
-# ------------------------------------------------------------------------------------------------- steps
 
 
 def split_batch(batch: dict[str, torch.Tensor], device: torch.device, use_indices: bool
@@ -280,119 +254,13 @@ def validation_metrics(model: torch.nn.Module, dataset: PointDataset, cfg: Train
     return out
 
 
-# ------------------------------------------------------------------------------------------------- metrics
-
-
-class MetricsLog:
-    """``metrics.csv`` (columns ``fields``): one row per step; on resume the rows after the checkpoint's step
-    are dropped."""
-
-    def __init__(self, path: Path, keep_until: int | None, fields: list[str] = METRIC_FIELDS):
-        self.path = path
-        rows = []
-        if keep_until is not None and path.is_file():
-            with path.open(newline="") as f:
-                rows = [r for r in csv.DictReader(f) if int(r["step"]) <= keep_until]
-        self.file = path.open("w", newline="")
-        self.writer = csv.DictWriter(self.file, fieldnames=fields)
-        self.writer.writeheader()
-        self.writer.writerows(rows)
-        self.file.flush()
-
-    def write(self, row: dict) -> None:
-        """Append one row (floats with 9 significant digits) and flush."""
-        self.writer.writerow({k: (f"{v:.9g}" if isinstance(v, float) else v) for k, v in row.items()})
-        self.file.flush()
-
-    def close(self) -> None:
-        self.file.close()
-
-
-def read_metrics(path: str | Path) -> list[dict]:
-    """Rows of a ``metrics.csv`` with numbers parsed (empty cells become None)."""
-    def num(v: str):
-        if v == "":
-            return None
-        try:
-            return int(v)
-        except ValueError:
-            try:
-                return float(v)
-            except ValueError:
-                return v
-
-    with Path(path).open(newline="") as f:
-        return [{k: num(v) for k, v in r.items()} for r in csv.DictReader(f)]
-
-
-# ------------------------------------------------------------------------------------------------- train
-
-
-def _worker_init(_: int) -> None:
-    torch.set_num_threads(1)
-
-
-def loader_generator(seed: int) -> torch.Generator:
-    """A DataLoader's own generator: creating an iterator would otherwise draw from torch's global generator
-    and shift the dropout stream of a resumed run (the items are keyed by (seed, epoch, frame), not seeded by it)."""
-    return torch.Generator().manual_seed(seed)
-
-
-def rng_state(device: torch.device) -> dict:
-    """Torch's CPU (and CUDA) generator states, for exact resume."""
-    state = {"cpu": torch.get_rng_state()}
-    if device.type == "cuda":
-        state["cuda"] = torch.cuda.get_rng_state(device)
-    return state
-
-
-def set_rng_state(state: dict, device: torch.device) -> None:
-    torch.set_rng_state(state["cpu"].cpu())
-    if device.type == "cuda" and "cuda" in state:
-        torch.cuda.set_rng_state(state["cuda"].cpu(), device)
-
-
-def check_resumable(saved: dict, cfg, path: Path, free: frozenset = RESUME_FREE_KEYS) -> None:
-    """A resumed run must use the settings that produced the checkpoint (``saved``, a config dict), bar the keys
-    in ``free`` (settings that do not change the result, e.g. :data:`RESUME_FREE_KEYS` for this module's runs)."""
-    now = config_to_dict(cfg)
-    for key in sorted(set(saved) | set(now)):
-        if key not in free and saved.get(key) != now.get(key):
-            raise DetectorError(f"{path}: cannot resume with {key}={now.get(key)!r}; the run used "
-                                f"{key}={saved.get(key)!r}")
-
-
-def run_checkpoint(out_dir: Path, resume: bool) -> Path:
-    """``out_dir/last.pt``, checked: it must exist to resume and must not to start a run (DetectorError)."""
-    last_path = Path(out_dir) / "last.pt"
-    if resume and not last_path.is_file():
-        raise DetectorError(f"nothing to resume: {last_path} does not exist")
-    if not resume and last_path.exists():
-        raise DetectorError(f"{out_dir} already holds a run; resume it or choose another folder")
-    return last_path
-
-
-def restore_state(net: torch.nn.Module, opt, sched, model_state: dict, state: dict, cfg, path: Path,
-                  device: torch.device, start: int, total: int, free: frozenset = RESUME_FREE_KEYS) -> None:
-    """Resume: check the run's settings (:func:`check_resumable` with the keys ``free`` to change), load weights,
-    optimiser, scheduler and RNG state; the learning rate then follows this run's schedule of ``total`` steps from
-    ``start`` (which differs from the saved one when ``steps`` grew)."""
-    check_resumable(state["config"], cfg, path, free)
-    net.load_state_dict(model_state)
-    opt.load_state_dict(state["optimizer"])
-    sched.load_state_dict(state["scheduler"])
-    set_rng_state(state["rng"], device)
-    for group, base_lr in zip(opt.param_groups, sched.base_lrs):
-        group["lr"] = base_lr * lr_factor(start, total, cfg)
-
-
 def train(cfg: TrainConfig, train_path: str | Path, out_dir: str | Path, val_path: str | Path | None = None,
           resume: bool = False, progress: bool = True, stop_after: int | None = None) -> TrainSummary:
-    """Train a PoseNet on a label file; write checkpoints and metrics to ``out_dir``; return a summary.
+    """Train a PointNet2 on a label file; write checkpoints and metrics to ``out_dir``; return a summary.
 
     ``stop_after``: end after this step as if interrupted there (``last.pt`` is written; ``resume=True``
     continues the same schedule), e.g. to train in time-boxed pieces. Under torchrun this joins the process
-    group (:func:`detector.distributed.setup`) and trains with DDP.
+    group (:func:`detector.training.distributed.setup`) and trains with DDP.
     """
     ctx = distributed.setup(cfg.device)
     try:
@@ -423,7 +291,7 @@ def _train(cfg: TrainConfig, train_path: str | Path, out_dir: str | Path, val_pa
     devices = [device] if device.type == "cuda" else []
     with torch.random.fork_rng(devices=devices):
         torch.manual_seed(cfg.seed)
-        net = PoseNet(model_cfg, num_classes=len(ds.class_ids)).to(device)
+        net = PointNet2(model_cfg, num_classes=len(ds.class_ids)).to(device)
         opt = torch.optim.AdamW(net.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
         sched = torch.optim.lr_scheduler.LambdaLR(opt, lambda s: lr_factor(s, total, cfg))
         start, best, val = 0, None, None
@@ -433,7 +301,8 @@ def _train(cfg: TrainConfig, train_path: str | Path, out_dir: str | Path, val_pa
             if "optimizer" not in state:
                 raise DetectorError(f"{last_path} holds no training state to resume from")
             start, best, val = int(payload["step"]), state.get("best_val_loss"), state.get("val")
-            restore_state(net, opt, sched, payload["model_state"], state, cfg, last_path, device, start, total)
+            restore_state(net, opt, sched, payload["model_state"], state, cfg, last_path, device, start, total,
+                          RESUME_FREE_KEYS)
         model = net
         if ctx.enabled:
             model = torch.nn.parallel.DistributedDataParallel(
@@ -442,7 +311,7 @@ def _train(cfg: TrainConfig, train_path: str | Path, out_dir: str | Path, val_pa
         if ctx.is_main:
             out_dir.mkdir(parents=True, exist_ok=True)
             (out_dir / "config.yaml").write_text(yaml.safe_dump(config_to_dict(cfg), sort_keys=False))
-            log = MetricsLog(out_dir / "metrics.csv", keep_until=start if resume else None)
+            log = MetricsLog(out_dir / "metrics.csv", keep_until=start if resume else None, fields=METRIC_FIELDS)
 
         def save(path: Path, step: int) -> None:
             extra = {"train_config": config_to_dict(cfg), "train_file": str(train_path), "val": val}
@@ -456,7 +325,7 @@ def _train(cfg: TrainConfig, train_path: str | Path, out_dir: str | Path, val_pa
         sampler = StreamBatchSampler(len(ds), cfg.batch_size, cfg.seed, start=start, rank=ctx.rank,
                                      world_size=ctx.world_size)
         loader = torch.utils.data.DataLoader(ds, batch_sampler=sampler, collate_fn=collate,
-                                             num_workers=cfg.num_workers, worker_init_fn=_worker_init,
+                                             num_workers=cfg.num_workers, worker_init_fn=worker_init,
                                              pin_memory=device.type == "cuda",
                                              generator=loader_generator(cfg.seed))
         seg_cfg = dataclasses.replace(cfg.loss, seg_only=True)
@@ -476,15 +345,9 @@ def _train(cfg: TrainConfig, train_path: str | Path, out_dir: str | Path, val_pa
                 lr = opt.param_groups[0]["lr"]
                 loss, parts = forward_loss(model, batch, seg_cfg if phase == "seg" else cfg.loss, device,
                                            use_indices, ctx)
-                opt.zero_grad(set_to_none=True)
-                loss.backward()
-                if ctx.enabled and phase == "seg":  # as in one process: the unused heads take no AdamW step
-                    for p in seg_unused:
-                        p.grad = None
-                if cfg.grad_clip > 0:
-                    torch.nn.utils.clip_grad_norm_(net.parameters(), cfg.grad_clip)
-                opt.step()
-                sched.step()
+                # as in one process: under DDP the unused heads of segmentation pre-training take no AdamW step
+                frozen = seg_unused if ctx.enabled and phase == "seg" else ()
+                optimiser_step(loss, net, opt, sched, cfg.grad_clip, frozen)
                 step += 1
                 now = time.perf_counter()
                 row = {"step": step, "epoch": step * cfg.batch_size / len(ds), "phase": phase,

@@ -1,4 +1,4 @@
-"""Pose stage: Kabsch, voting, NMS, ICP on exact synthetic data."""
+"""detector.geometry: Kabsch, voting, NMS, ICP on exact synthetic data."""
 
 from dataclasses import replace
 
@@ -7,23 +7,18 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from argen.models.objects import builtin_objects
-from detector.pose import (
-    Detection,
-    ObjectInfo,
-    PoseConfig,
-    detect,
+from detector.geometry.icp import (
     fit_residuals,
     fit_rms,
     icp_refine,
-    kabsch,
-    nms,
     refine,
     refine_pose,
-    robust_control_points,
     support_radius,
     surface_support,
-    vote_clusters,
 )
+from detector.geometry.kabsch import kabsch
+from detector.geometry.types import Detection, GeometryConfig, ObjectInfo
+from detector.geometry.voting import detect, nms, robust_control_points, vote_clusters
 
 BOX = np.array([[x, y, z] for x in (-0.04, 0.04) for y in (-0.03, 0.03) for z in (-0.02, 0.02)] + [[0, 0, 0]])
 DIAM = float(np.linalg.norm([0.08, 0.06, 0.04]))
@@ -83,7 +78,7 @@ def test_vote_modes_keep_two_side_by_side_instances_apart():
     """Two instances of a 10 cm object 7 cm apart (LC-HF scenes put them side by side), votes scattered 1 cm per
     axis: the vote clouds touch, so touching voxels make one cluster; the density modes make two, each around
     its instance. One instance's votes alone stay one cluster, and too few votes make none."""
-    from detector.pose import vote_modes
+    from detector.geometry.voting import vote_modes
 
     rng = np.random.default_rng(9)
     ca, cb = np.array([0.0, 0.0, 0.8]), np.array([0.07, 0.0, 0.8])
@@ -106,7 +101,7 @@ def test_vote_modes_keep_two_side_by_side_instances_apart():
     cps = np.broadcast_to(box, (len(votes), 9, 3)) + (votes - box[8])[:, None, :]
     xyz, ids, conf = votes.copy(), np.full(len(votes), 7), np.ones(len(votes))
     for radius, found in ((0.0, 1), (0.35, 2)):
-        dets = detect(xyz, ids, conf, cps, objs, PoseConfig(centre_votes=True, tau=0.1, mode_radius=radius))
+        dets = detect(xyz, ids, conf, cps, objs, GeometryConfig(centre_votes=True, tau=0.1, mode_radius=radius))
         assert len(dets) == found
     assert sorted(round(float(d.control_points[8][0]), 2) for d in dets) == [0.0, 0.07]
 
@@ -127,7 +122,7 @@ def test_detect_two_instances_of_one_object_and_background():
     xyz.append(rng.uniform(-1, 1, (50, 3))), ids.append(np.full(50, 7)), conf.append(np.full(50, 0.5))
     cps.append(rng.uniform(-1, 1, (50, 9, 3)))
     dets = detect(np.concatenate(xyz), np.concatenate(ids), np.concatenate(conf), np.concatenate(cps), objs,
-                  PoseConfig())
+                  GeometryConfig())
     assert len(dets) == 2
     assert sorted(d.support for d in dets) == [90, 120]
     for d in dets:
@@ -175,7 +170,7 @@ def test_refine_uses_member_points():
     R0 = Rotation.from_rotvec([0.0, 0.06, 0.0]).as_matrix() @ R
     d = Detection(5, 1.0, R0, t + [0.0, 0.008, 0.0], len(scene), np.zeros((9, 3)), np.arange(len(scene)))
     timings = {}
-    (r,) = refine([d], scene, objs, PoseConfig(icp=True), timings)
+    (r,) = refine([d], scene, objs, GeometryConfig(icp=True), timings)
     assert r.refined and timings["icp"] > 0
     assert np.linalg.norm(r.t - t) < 0.3 * np.linalg.norm(d.t - t)
 
@@ -193,9 +188,9 @@ def test_refine_carries_few_members_to_the_full_cloud():
     objs = ObjectInfo({5: obj.control_points}, {5: obj.diameter}, {5: model})
     R0 = Rotation.from_rotvec([0.05, 0.0, 0.03]).as_matrix() @ R
     d = Detection(5, 1.0, R0, t + [0.006, 0.0, 0.0], 20, np.zeros((9, 3)), np.arange(20))
-    (same,) = refine([d], xyz, objs, PoseConfig(icp=True))
+    (same,) = refine([d], xyz, objs, GeometryConfig(icp=True))
     assert not same.refined and same.t is d.t
-    (r,) = refine([d], xyz, objs, PoseConfig(icp=True, propagate=0.03), cloud=np.concatenate([cloud, background]))
+    (r,) = refine([d], xyz, objs, GeometryConfig(icp=True, propagate=0.03), cloud=np.concatenate([cloud, background]))
     assert r.refined and np.linalg.norm(r.t - t) < 0.2 * np.linalg.norm(d.t - t) and rot_err_deg(r.R, R) < 1.0
 
 
@@ -229,9 +224,9 @@ def add_error(model, R, t, Re, te):
     return float(np.linalg.norm((model @ Re.T + te) - (model @ R.T + t), axis=1).mean())
 
 
-def trimmed_fit(objs: ObjectInfo, pts: np.ndarray, R, t, cfg: PoseConfig | None = None) -> float:
+def trimmed_fit(objs: ObjectInfo, pts: np.ndarray, R, t, cfg: GeometryConfig | None = None) -> float:
     """The measure that decides whether ICP's pose is kept: the trimmed point-to-plane RMS of ``pts`` (object 1)."""
-    cfg = cfg or PoseConfig()
+    cfg = cfg or GeometryConfig()
     tree, normals = objs.surface(1)
     return fit_rms(fit_residuals(pts, tree, normals, R, t, cfg.icp_gate * objs.diameters[1]), cfg.icp_trim)
 
@@ -244,7 +239,7 @@ def test_icp_keeps_exact_poses_within_a_millimetre():
         obj, model, R, t, surf, _ = resting_scene(name, rng)
         objs = ObjectInfo({1: obj.control_points}, {1: obj.diameter}, {1: model})
         d = Detection(1, 1.0, R, t, len(surf), np.zeros((9, 3)), np.arange(len(surf)))
-        (r,) = refine([d], surf, objs, PoseConfig(icp=True))
+        (r,) = refine([d], surf, objs, GeometryConfig(icp=True))
         assert r.icp in ("accepted", "rejected")
         assert add_error(model, R, t, r.R, r.t) < 0.001
         if r.icp == "accepted":
@@ -261,7 +256,7 @@ def test_icp_fixes_a_pose_perturbed_by_5_to_10_degrees_and_1_to_2_cm():
         t0 = t + (0.01 + 0.01 * k / 3) * shift / np.linalg.norm(shift)
         noisy = surf + rng.normal(0, 0.001, surf.shape)
         d = Detection(1, 1.0, R0, t0, len(surf), np.zeros((9, 3)), np.arange(len(surf)))
-        (r,) = refine([d], noisy, objs, PoseConfig(icp=True))
+        (r,) = refine([d], noisy, objs, GeometryConfig(icp=True))
         assert r.icp == "accepted" and r.refined
         assert trimmed_fit(objs, noisy, r.R, r.t) < trimmed_fit(objs, noisy, R0, t0)
         assert add_error(model, R, t, r.R, r.t) < 0.1 * add_error(model, R, t, R0, t0)
@@ -283,17 +278,17 @@ def test_icp_refuses_a_pose_the_support_plane_drags_away():
         Ri, ti = icp_refine(pts, model, R, t, 0.2 * obj.diameter, 30, objs.cloud(1))
         dragged += add_error(model, R, t, Ri, ti) > 0.003
         d = Detection(1, 1.0, R, t, len(pts), np.zeros((9, 3)), np.arange(len(pts)))
-        (r,) = refine([d], pts, objs, PoseConfig(icp=True))
+        (r,) = refine([d], pts, objs, GeometryConfig(icp=True))
         assert r.icp == "rejected" and not r.refined
         assert np.array_equal(r.R, R) and np.array_equal(r.t, t)
-        _, _, ok, (before, after) = refine_pose(pts, 1, R, t, objs, PoseConfig(icp=True))
+        _, _, ok, (before, after) = refine_pose(pts, 1, R, t, objs, GeometryConfig(icp=True))
         assert not ok and after >= before  # ICP's best pose fits the object's points worse
     assert dragged >= 2  # the plane really pulls plain ICP away
 
 
 def test_icp_points_leave_out_background_and_other_detections():
     """A cloud point joins a detection only when all its nearest predicted points are that detection's."""
-    from detector.pose import nearest_owner, owned_points
+    from detector.geometry.icp import nearest_owner, owned_points
 
     xyz = np.array([[0.0, 0, 1], [0.01, 0, 1], [0.02, 0, 1],  # detection A
                     [0.03, 0, 1],  # background
@@ -308,7 +303,7 @@ def test_icp_points_leave_out_background_and_other_detections():
 
 
 def test_report_counts_icp_decisions():
-    from detector.pose import icp_counts
+    from detector.geometry.icp import icp_counts
 
     d = Detection(1, 1.0, np.eye(3), np.zeros(3), 3, np.zeros((9, 3)), np.arange(3))
     from dataclasses import replace
@@ -318,7 +313,7 @@ def test_report_counts_icp_decisions():
 
 
 def test_surface_support_is_high_for_the_right_pose_only():
-    from detector.pose import surface_support
+    from detector.geometry.icp import surface_support
 
     rng = np.random.default_rng(21)
     obj, model, R, t, surf, table = resting_scene("drill", rng)
@@ -336,7 +331,7 @@ def test_support_floor_keeps_right_poses_of_small_objects_under_sensor_noise():
     """With the depth error of a Kinect v1 near 1 m (a median 2.4 mm off the surface), 2 % of a 12 cm object's
     diameter (2.5 mm) explains only about half of its points under the right pose, below the score threshold; a
     floor of 4 mm explains most of them, and a pose turned by 30 degrees still scores low."""
-    from detector.pose import support_radius, surface_support
+    from detector.geometry.icp import support_radius, surface_support
 
     rng = np.random.default_rng(22)
     obj, model, R, t, surf, _ = resting_scene("duck", rng)
@@ -346,7 +341,7 @@ def test_support_floor_keeps_right_poses_of_small_objects_under_sensor_noise():
     n_cam = normals[tree.query((surf - t) @ R)[1]] @ R.T
     noisy = surf + n_cam * rng.normal(0.0, 0.0036, (len(surf), 1))
     assert np.median(np.abs(np.einsum("ij,ij->i", noisy - surf, n_cam))) == pytest.approx(0.0024, abs=0.0003)
-    cfg = PoseConfig()
+    cfg = GeometryConfig()
     assert support_radius(cfg.support_distance, 0.0, obj.diameter) == pytest.approx(0.02 * obj.diameter)
     assert support_radius(cfg.support_distance, cfg.support_floor, 0.5) == pytest.approx(0.01)  # large: the fraction
     without = surface_support(noisy, tree, normals, R, t, support_radius(cfg.support_distance, 0.0, obj.diameter))
@@ -372,9 +367,9 @@ def test_icp_starts_from_alternatives_and_keeps_the_best_fit():
         bad = Rotation.from_rotvec(np.radians(90) * np.array([1.0, 0.0, 0.0])).as_matrix() @ R
         d = Detection(1, 1.0, wrong, t, len(surf), np.zeros((9, 3)), np.arange(len(surf)),
                       alternatives=[(bad, t), (near, t + 0.01)])
-        (one,) = refine([d], noisy, objs, PoseConfig(icp=True, icp_starts=1))
-        (two,) = refine([d], noisy, objs, PoseConfig(icp=True, icp_starts=2))
-        (three,) = refine([d], noisy, objs, PoseConfig(icp=True, icp_starts=3))
+        (one,) = refine([d], noisy, objs, GeometryConfig(icp=True, icp_starts=1))
+        (two,) = refine([d], noisy, objs, GeometryConfig(icp=True, icp_starts=2))
+        (three,) = refine([d], noisy, objs, GeometryConfig(icp=True, icp_starts=3))
         assert add_error(model, R, t, one.R, one.t) > 0.1 * obj.diameter  # ICP from the wrong pose stays wrong
         assert add_error(model, R, t, two.R, two.t) > 0.1 * obj.diameter  # the near pose is the third start
         assert three.icp == "accepted"
@@ -397,13 +392,13 @@ def test_icp_keeps_a_right_pose_unless_it_fits_clearly_better():
     scene = scene + rng.normal(0, 0.0005, scene.shape)
     objs = ObjectInfo({1: np.zeros((9, 3))}, {1: 0.1}, {1: model})
     d = Detection(1, 1.0, R, t, len(scene), np.zeros((9, 3)), np.arange(len(scene)))
-    (slid,) = refine([d], scene, objs, PoseConfig(icp=True, icp_min_gain=0.0))
-    _, _, ok, (before, after) = refine_pose(scene, 1, R, t, objs, PoseConfig(icp=True, icp_min_gain=0.0))
+    (slid,) = refine([d], scene, objs, GeometryConfig(icp=True, icp_min_gain=0.0))
+    _, _, ok, (before, after) = refine_pose(scene, 1, R, t, objs, GeometryConfig(icp=True, icp_min_gain=0.0))
     assert slid.icp == "accepted" and ok and before - after < 0.001 * 0.1  # a gain below 0.1 mm
-    (kept,) = refine([d], scene, objs, PoseConfig(icp=True))
+    (kept,) = refine([d], scene, objs, GeometryConfig(icp=True))
     assert kept.icp == "rejected" and np.array_equal(kept.R, R) and np.array_equal(kept.t, t)
     off = replace(d, t=t + [0.01, 0.0, 0.0])
-    (fixed,) = refine([off], scene, objs, PoseConfig(icp=True))
+    (fixed,) = refine([off], scene, objs, GeometryConfig(icp=True))
     assert fixed.icp == "accepted" and np.linalg.norm(fixed.t - t) < 0.002
 
 
@@ -419,7 +414,7 @@ def test_icp_on_a_spread_subset_of_many_points_still_fixes_the_pose():
     R0 = Rotation.from_rotvec(np.radians(6) * np.array([0.6, 0.0, 0.8])).as_matrix() @ R
     d = Detection(1, 1.0, R0, t + [0.015, 0.0, 0.0], 10, np.zeros((9, 3)), np.arange(3),
                   points=np.arange(len(noisy)))
-    cfg = PoseConfig(icp=True, icp_points=150)
+    cfg = GeometryConfig(icp=True, icp_points=150)
     (r,) = refine([d], noisy[:3], objs, cfg, cloud=noisy)
     assert r.icp == "accepted" and add_error(model, R, t, r.R, r.t) < 0.003
     tree, normals = objs.surface(1)
@@ -428,5 +423,5 @@ def test_icp_on_a_spread_subset_of_many_points_still_fixes_the_pose():
     spread = noisy[np.linspace(0, len(noisy) - 1, 150).round().astype(np.int64)]  # ICP and its test ran on these
     R1, t1, ok, _ = refine_pose(spread, 1, d.R, d.t, objs, cfg)
     assert ok and np.allclose(R1, r.R, atol=1e-9) and np.allclose(t1, r.t, atol=1e-12)
-    (full,) = refine([d], noisy[:3], objs, PoseConfig(icp=True), cloud=noisy)
+    (full,) = refine([d], noisy[:3], objs, GeometryConfig(icp=True), cloud=noisy)
     assert add_error(model, R, t, full.R, full.t) < 0.003

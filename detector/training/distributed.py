@@ -5,8 +5,8 @@
 the process group (``gloo`` on CPU, ``nccl`` on CUDA, one GPU per process: ``cuda:LOCAL_RANK``). Without
 those variables (a plain ``detector train``) everything here is a no-op for a world of one.
 
-How a distributed run matches a single-process one (see :mod:`detector.train`): ``batch_size`` stays the
-*global* batch, each process takes its share of every batch (:func:`detector.data.rank_share`), the
+How a distributed run matches a single-process one (see :mod:`detector.stage1.train`): ``batch_size`` stays the
+*global* batch, each process takes its share of every batch (:func:`detector.data.batches.rank_share`), the
 object-keypoint count that normalises the offset and confidence terms is summed over the processes, and
 DDP averages the gradients, so one step of N processes computes the gradient of the same loss over the
 same frames as one process (up to floating-point summation order). Only rank 0 writes files.

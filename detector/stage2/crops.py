@@ -17,24 +17,26 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import cKDTree
 
+from detector.data.augment import camera_colour, normalised_colour
+
 
 @dataclass
 class CropConfig:
     """How crops are cut and sampled.
 
-    radius: ball radius as a fraction of the object's diameter; num_points: points fed per crop;
-    min_points: crops with fewer frame points are not used; centre_jitter: standard deviation per axis of the
-    training crop centre around the true centre, as a fraction of the diameter (stage 1's centre error, which
-    grows with the object: measured 0.09-0.1 of the diameter per axis on a validation capture, from 1.6 cm for
-    the ape to 3.7 cm for the driller); centre_jitter_clip: its bound per axis, same unit;
-    min_visib: training instances with a smaller visible fraction are left out; min_object_points: nor those
-    with fewer labelled points; roll_deg: augmentation rolls a crop about the camera ray by up to this many
-    degrees (a camera's roll about its view direction varies little in a capture: capture-sim draws it with a 5
-    degree spread, a hand-held sensor also stays near upright, and the support plane below an object is a cue
-    the network should keep); colour: the colour augmentation, "light" (a gain of 0.8-1.2 and noise on the
-    normalised colours), "camera" (:func:`camera_colour`: exposure, white balance, gamma, sometimes grey or no
-    colour at all, as real cameras differ from the renderer) or "none" (the network gets no colour); neighbour: augmentation puts, with this chance, a
-    copy of the instance's own points beside it as background (:func:`add_neighbour`), at a lateral distance of
+    radius: ball radius as a fraction of the object's diameter; num_points: points fed per crop; min_points: crops
+    with fewer frame points are not used; centre_jitter: standard deviation per axis of the training crop centre
+    around the true centre, as a fraction of the diameter (stage 1's centre error, which grows with the object:
+    measured 0.09-0.1 of the diameter per axis on a validation capture, from 1.6 cm for the ape to 3.7 cm for the
+    driller); centre_jitter_clip: its bound per axis, same unit; min_visib: training instances with a smaller
+    visible fraction are left out; min_object_points: nor those with fewer labelled points; roll_deg: augmentation
+    rolls a crop about the camera ray by up to this many degrees (a camera's roll about its view direction varies
+    little in a capture: capture-sim draws it with a 5 degree spread, a hand-held sensor also stays near upright,
+    and the support plane below an object is a cue the network should keep); colour: the colour augmentation,
+    "light" (a gain of 0.8-1.2 and noise on the normalised colours) or "camera"
+    (:func:`detector.data.augment.camera_colour`: exposure, white balance, gamma, sometimes grey or no colour at
+    all, as real cameras differ from the renderer); neighbour: augmentation puts, with this chance, a copy of the
+    instance's own points beside it as background (:func:`add_neighbour`), at a lateral distance of
     ``neighbour_offset`` (min, max) diameters between the centres: scenes such as LC-HF hold several instances of
     one object side by side, and a crop around one of them must not take its neighbour for it.
     """
@@ -63,7 +65,6 @@ class CropConfig:
         return cls(**d)
 
 
-
 def ball_rows(xyz: np.ndarray, centre: np.ndarray, radius: float) -> np.ndarray:
     """Rows of the points (N,3) metres within ``radius`` metres of ``centre`` (3,). Returns (k,) int64, sorted."""
     d2 = np.sum((np.asarray(xyz, np.float64) - np.asarray(centre, np.float64)) ** 2, axis=1)
@@ -77,21 +78,12 @@ def sample_crop(rows: np.ndarray, num_points: int, rng: np.random.Generator) -> 
     return np.concatenate([rows, rows[rng.choice(len(rows), num_points - len(rows), replace=True)]])
 
 
-def normalised_colour(rgb: np.ndarray, normalisation: dict) -> np.ndarray:
-    """Network colour input: ``(rgb - rgb_mean) / rgb_std``, or zeros for a network without colour input
-    (``normalisation["colour"] == "none"``). rgb: (n,3) in [0, 1]; normalisation: {"rgb_mean", "rgb_std"[, "colour"]}
-    (``detector.data.input_normalisation``). Returns (n,3) float32."""
-    if normalisation.get("colour") == "none":
-        return np.zeros(np.shape(rgb), np.float32)
-    return ((rgb - normalisation["rgb_mean"]) / normalisation["rgb_std"]).astype(np.float32)
-
-
 def crop_input(features: np.ndarray, rows: np.ndarray, centre: np.ndarray, radius: float,
                normalisation: dict) -> np.ndarray:
     """Network input of a crop: (n, 9) float32 ``[(p - centre) / radius, colour (normalised), normal]``.
 
     features: (N,9) float32 label-file features, colour in [0, 1]; rows: (n,) the crop's rows; centre: (3,)
-    metres; radius: metres; normalisation: {"rgb_mean", "rgb_std"} (``detector.data.NORMALISATION``).
+    metres; radius: metres; normalisation: {"rgb_mean", "rgb_std"} (``detector.data.augment.NORMALISATION``).
     """
     out = np.array(np.asarray(features)[rows], dtype=np.float32, copy=True)
     out[:, 3:6] = normalised_colour(out[:, 3:6], normalisation)
@@ -176,36 +168,6 @@ def roll_about_ray(points: np.ndarray, centre: np.ndarray, angle: float) -> tupl
     K = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
     Q = np.eye(3) + np.sin(angle) * K + (1 - np.cos(angle)) * K @ K
     return (np.asarray(points, np.float64) - centre) @ Q.T + centre, Q
-
-
-#: The colour input of both stages' training: "light" (colour with a small gain and noise), "camera" (colour changed as
-#: another camera would give it: camera_colour) or "none" (no colour: the network sees geometry only, in training and
-#: at inference, whatever camera gives the frame).
-COLOUR_MODES = ("light", "camera", "none")
-
-#: camera_colour's ranges: exposure gain, per-channel white-balance gain, gamma, and the chances of a grey crop and
-#: of one without colour.
-EXPOSURE = (0.5, 1.6)
-WHITE_BALANCE = 0.15
-GAMMA = (0.6, 1.6)
-P_GREY, P_NO_COLOUR = 0.1, 0.05
-
-
-def camera_colour(rgb: np.ndarray, rng: np.random.Generator) -> np.ndarray:
-    """Colours as another camera might give them: ``(rgb * exposure * white_balance) ** gamma`` plus 2 % noise, with
-    the exposure and gamma drawn log-uniformly from :data:`EXPOSURE` and :data:`GAMMA`; with chance
-    :data:`P_GREY` the crop is grey, with :data:`P_NO_COLOUR` all zeros (a depth-only input).
-
-    rgb: (n,3) in [0, 1]. Returns (n,3) float32 in [0, 1].
-    """
-    u = rng.random()
-    if u < P_NO_COLOUR:
-        return np.zeros_like(rgb, dtype=np.float32)
-    gain = np.exp(rng.uniform(*np.log(EXPOSURE))) * rng.uniform(1 - WHITE_BALANCE, 1 + WHITE_BALANCE, 3)
-    out = np.clip(np.asarray(rgb, np.float64) * gain, 0.0, 1.0) ** np.exp(rng.uniform(*np.log(GAMMA)))
-    if u < P_NO_COLOUR + P_GREY:
-        out = np.repeat(out.mean(1, keepdims=True), 3, axis=1)
-    return np.clip(out + rng.normal(0.0, 0.02, out.shape), 0.0, 1.0).astype(np.float32)
 
 
 def add_neighbour(own_xyz: np.ndarray, own_feats: np.ndarray, centre: np.ndarray, diameter: float,

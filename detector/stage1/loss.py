@@ -71,7 +71,7 @@ def multitask_loss(out: dict, target: dict, cfg: LossConfig, pos_count: torch.Te
                    ) -> tuple[torch.Tensor, dict[str, float]]:
     """Total loss (scalar tensor) and its unweighted parts as floats: ``cls``, ``offset``, ``conf``, ``total``.
 
-    out: PoseNet output (``logits`` (B, K, C+1), ``xyz`` (B, K, 3), ``offsets`` (B, K, 9, 3) metres,
+    out: PointNet2 output (``logits`` (B, K, C+1), ``xyz`` (B, K, 3), ``offsets`` (B, K, 9, 3) metres,
     ``confidence`` (B, K)); target: ``cls`` (B, K) int64 (0 = background), ``control_points`` (B, K, 9, 3) metres.
     pos_count: the object-keypoint count that divides the offset and confidence sums (default: this batch's;
     data-parallel training passes the global batch's count, at least 1, divided by the number of processes).

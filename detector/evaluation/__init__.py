@@ -1,0 +1,1 @@
+"""Scores: ADD / ADD-S matching, and BOP19's pose errors and average recall."""

@@ -1,0 +1,192 @@
+"""ICP refinement and the fit measures: point-to-plane ICP (open3d, loaded lazily) from a detection's pose and its
+alternatives, kept only when it improves the trimmed point-to-plane fit (:func:`fit_rms`) over the same scene points,
+so ICP never makes a pose worse by its own measure; the surface support that scores a two-stage detection; and
+carrying the network's segmentation to the frame's full cloud (:func:`nearest_owner`, :func:`owned_points`).
+Numpy and scipy; metres."""
+
+from __future__ import annotations
+
+import time
+from dataclasses import replace
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from detector.geometry.types import Detection, GeometryConfig, ObjectInfo, make_model_cloud
+
+
+def icp_refine(scene_points: np.ndarray, model_points: np.ndarray, R: np.ndarray, t: np.ndarray,
+               max_distance: float, iterations: int = 30, model_cloud=None, kernel: float | None = None
+               ) -> tuple[np.ndarray, np.ndarray]:
+    """Refine a pose with point-to-plane ICP (open3d) of the instance's scene points onto the model.
+
+    The scene (a partial view) is registered to the model surface, so every scene point has a true match.
+    scene_points: (S,3) camera frame, metres; model_points: (P,3) model frame, metres; R (3,3), t (3,) the
+    initial T_cam_model; max_distance: correspondence distance, metres; model_cloud: a cached
+    :func:`detector.geometry.types.make_model_cloud` of ``model_points``; kernel: Tukey robust-loss scale, metres
+    (None: plain least squares).
+    Returns the refined R (3,3), t (3,) float64.
+    """
+    # lazy: open3d, as in make_model_cloud
+    import open3d as o3d
+
+    reg = o3d.pipelines.registration
+    target = model_cloud if model_cloud is not None else make_model_cloud(model_points)
+    source = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(scene_points, np.float64)))
+    T0 = np.eye(4)
+    T0[:3, :3], T0[:3, 3] = R, t
+    init = np.linalg.inv(T0)  # camera -> model
+    est = reg.TransformationEstimationPointToPlane(reg.TukeyLoss(k=kernel)) if kernel else \
+        reg.TransformationEstimationPointToPlane()
+    res = reg.registration_icp(source, target, max_distance, init, est,
+                               reg.ICPConvergenceCriteria(max_iteration=iterations))
+    if len(res.correspondence_set) < 3:
+        return np.asarray(R, np.float64), np.asarray(t, np.float64)
+    T = np.linalg.inv(np.asarray(res.transformation))
+    return T[:3, :3], T[:3, 3]
+
+
+def fit_residuals(scene_points: np.ndarray, model_tree, model_normals: np.ndarray, R: np.ndarray, t: np.ndarray,
+                  gate: float) -> np.ndarray:
+    """Point-to-plane distance of each scene point to the model surface under the pose (R, t).
+
+    scene_points: (S,3) camera frame, metres; model_tree: a scipy cKDTree of the model points (P,3) model frame;
+    model_normals: (P,3) unit normals; R (3,3), t (3,) T_cam_model, or R (K,3,3), t (K,3) for K poses at once;
+    gate: metres, a point whose nearest model point is farther gets ``gate``. Returns (S,) float64 metres, each at
+    most ``gate`` ((K,S) for K poses).
+    """
+    R, t = np.asarray(R, np.float64), np.asarray(t, np.float64)
+    many = R.ndim == 3
+    Rk, tk = (R, t) if many else (R[None], t[None])
+    x = (np.asarray(scene_points, np.float64)[None] - tk[:, None]) @ Rk  # model frame, (K,S,3)
+    flat = x.reshape(-1, 3)
+    d, j = model_tree.query(flat, k=1, distance_upper_bound=gate)
+    found = np.isfinite(d)
+    r = np.full(len(flat), gate)
+    jj = j[found]
+    r[found] = np.minimum(np.abs(np.einsum("ij,ij->i", flat[found] - model_tree.data[jj], model_normals[jj])), gate)
+    r = r.reshape(len(Rk), -1)
+    return r if many else r[0]
+
+
+def fit_rms(residuals: np.ndarray, trim: float) -> float:
+    """Least-trimmed RMS: the RMS of the smallest ``trim`` share (at least 3) of the residuals (S,) metres.
+
+    Robust to up to 1 - trim of the points being wrong (a support plane or a neighbour that slipped into the
+    segment): a pose that such points drag away fits the object's own points worse, and this says so.
+    """
+    r = np.sort(np.asarray(residuals, np.float64))
+    k = min(len(r), max(3, int(np.ceil(trim * len(r)))))
+    return float(np.sqrt(np.mean(r[:k] ** 2))) if k else float("inf")
+
+
+def support_radius(fraction: float, floor: float, diameter: float) -> float:
+    """The distance (metres) within which a point counts as explained by the model surface: ``fraction`` of the
+    ``diameter`` (metres), but at least ``floor`` metres (the sensor's noise)."""
+    return max(fraction * diameter, floor)
+
+
+def surface_support(points: np.ndarray, model_tree, model_normals: np.ndarray, R: np.ndarray, t: np.ndarray,
+                    distance: float) -> float:
+    """Share of the points (S,3) camera frame, metres, within ``distance`` metres of the model surface under
+    (R, t) (point-to-plane, see :func:`fit_residuals`): how well a pose explains a detection's own points.
+    0 for no points."""
+    if len(points) == 0:
+        return 0.0
+    return float(np.mean(fit_residuals(points, model_tree, model_normals, R, t, 2.5 * distance) < distance))
+
+
+def nearest_owner(xyz: np.ndarray, cloud: np.ndarray, radius: float, k: int = 1) -> np.ndarray:
+    """The ``k`` nearest predicted points of every cloud point (carries the network's segmentation to all points).
+
+    xyz: (K,3) metres, the predicted points; cloud: (M,3) metres; radius: metres, farther predicted points are
+    not neighbours. Returns (M,) int64 row of ``xyz`` (k = 1) or (M,k) rows, -1 for none.
+    """
+    dist, owner = cKDTree(np.asarray(xyz, np.float64)).query(np.asarray(cloud, np.float64), k=k,
+                                                            distance_upper_bound=radius)
+    return np.where(np.isfinite(dist), owner, -1).astype(np.int64)
+
+
+def owned_points(owners: np.ndarray, members: np.ndarray, num_predicted: int) -> np.ndarray:
+    """Cloud points that belong to a detection: all their neighbours (see :func:`nearest_owner`, -1 = none) are
+    its members, and they have at least one. owners: (M,) or (M,k) int64; members: (S,) rows of the K predicted
+    points. Returns (M,) bool. A point next to background or another detection's points is left out."""
+    owners = owners.reshape(len(owners), -1)
+    is_member = np.zeros(num_predicted + 1, bool)  # the extra last entry is the "no owner" row -1
+    is_member[members] = True
+    none = owners < 0
+    return np.all(is_member[owners] | none, axis=1) & ~np.all(none, axis=1)
+
+
+def refine_pose(scene_points: np.ndarray, obj_id: int, R: np.ndarray, t: np.ndarray, objects: ObjectInfo,
+                cfg: GeometryConfig, alternatives: list | None = None
+                ) -> tuple[np.ndarray, np.ndarray, bool, tuple[float, float]]:
+    """ICP from (R, t), kept only when it lowers the trimmed point-to-plane RMS of the same scene points
+    by at least ``cfg.icp_min_gain`` of the diameter.
+
+    scene_points: (S,3) camera frame, metres; R (3,3), t (3,) the initial T_cam_model; alternatives: other
+    starting poses [(R, t), ...], of which the first ``cfg.icp_starts - 1`` are also refined; the ICP result
+    that fits best is the candidate. Returns R (3,3), t (3,), accepted (False: the input pose, unchanged) and
+    (RMS before, RMS after) in metres.
+    """
+    dia = objects.diameters[obj_id]
+    tree, normals = objects.surface(obj_id)
+    gate = cfg.icp_gate * dia
+    before = fit_rms(fit_residuals(scene_points, tree, normals, R, t, gate), cfg.icp_trim)
+    starts = [(R, t)] + list(alternatives or [])[:max(cfg.icp_starts - 1, 0)]
+    results = [icp_refine(scene_points, objects.model_points[obj_id], R0, t0, cfg.icp_distance * dia,
+                          cfg.icp_iterations, objects.cloud(obj_id), cfg.icp_kernel * dia if cfg.icp_kernel else None)
+               for R0, t0 in starts]
+    res = fit_residuals(scene_points, tree, normals, np.stack([r[0] for r in results]),
+                        np.stack([r[1] for r in results]), gate)  # every start's result in one query
+    fits = [fit_rms(r, cfg.icp_trim) for r in res]
+    k = int(np.argmin(fits))  # the first of equal fits, as before
+    after, (R1, t1) = fits[k], results[k]
+    if after < before - cfg.icp_min_gain * dia:
+        return R1, t1, True, (before, after)
+    return np.asarray(R, np.float64), np.asarray(t, np.float64), False, (before, after)
+
+
+def refine(detections: list[Detection], xyz: np.ndarray, objects: ObjectInfo, cfg: GeometryConfig,
+           timings: dict | None = None, cloud: np.ndarray | None = None) -> list[Detection]:
+    """ICP-refined copies of ``detections`` using each one's scene points (metres).
+
+    xyz: (K,3) the predicted points (``members`` index them); cloud: (M,3) the frame's full point cloud or None.
+    A detection that carries ``points`` (rows of ``cloud``) uses those. Otherwise, with a cloud, a detection's
+    scene points are the cloud points whose ``cfg.owner_votes`` nearest predicted
+    points (within ``cfg.propagate``) are all its members (several times more points than the network's, and
+    none next to points predicted as background or as another detection); else ``xyz[members]``. Each ICP pose
+    is kept only when it fits those points better (:func:`refine_pose`); the detection's ``icp`` says what
+    happened. Detections with fewer than ``cfg.icp_min_points`` scene points are "skipped". Adds "icp" seconds.
+    """
+    t0 = time.perf_counter()
+    propagate = cloud is not None and any(d.points is None for d in detections)  # a two-stage model's carry points
+    owners = nearest_owner(xyz, cloud, cfg.propagate, cfg.owner_votes) if propagate else None
+    out = []
+    for d in detections:
+        if d.points is not None and cloud is not None:
+            pts = np.asarray(cloud)[d.points]
+        elif owners is not None:
+            pts = np.asarray(cloud)[owned_points(owners, d.members, len(xyz))]
+        else:
+            pts = xyz[d.members]
+        if len(pts) < cfg.icp_min_points:
+            out.append(replace(d, icp="skipped"))
+            continue
+        fit = pts if cfg.icp_points <= 0 or len(pts) <= cfg.icp_points else \
+            pts[np.linspace(0, len(pts) - 1, cfg.icp_points).round().astype(np.int64)]
+        R, t, ok, _ = refine_pose(fit, d.obj_id, d.R, d.t, objects, cfg, d.alternatives)
+        score = d.score
+        if d.points is not None:  # a two-stage detection: its score is the support of its points, at the new pose
+            tree, normals = objects.surface(d.obj_id)
+            score = surface_support(pts, tree, normals, R, t,
+                                    support_radius(cfg.support_distance, cfg.support_floor, objects.diameters[d.obj_id]))
+        out.append(replace(d, R=R, t=t, score=score, refined=ok, icp="accepted" if ok else "rejected"))
+    if timings is not None:
+        timings["icp"] = timings.get("icp", 0.0) + time.perf_counter() - t0
+    return out
+
+
+def icp_counts(detections: list[Detection]) -> dict[str, int]:
+    """How many ``detections`` had their ICP pose accepted, rejected or skipped: {"accepted", "rejected", "skipped"}."""
+    return {k: sum(d.icp == k for d in detections) for k in ("accepted", "rejected", "skipped")}

@@ -1,0 +1,154 @@
+"""The types the geometry works with: :class:`GeometryConfig` (voting, ICP and score settings), a
+:class:`Detection` and :class:`ObjectInfo` (each object's control points, diameter and model points, with the
+cached model cloud and surface). Metres; poses map model into camera points (``x_cam = R @ x_model + t``)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+
+@dataclass
+class GeometryConfig:
+    """Options of the geometry: voting, Kabsch, ICP, scores and thresholds.
+
+    tau: confidence threshold; cell: voting voxel size, metres; min_votes: fewest votes an instance needs;
+    mode_radius: > 0 clusters the centre votes around their density modes within this fraction of the diameter
+    (:func:`vote_modes`; instances side by side stay apart) instead of in touching ``cell`` voxels;
+    nms_fraction: centres closer than this fraction of the object's diameter are one detection;
+    inlier_fraction: votes farther than this fraction of the diameter from the median are outliers;
+    icp: refine with ICP; icp_distance: ICP correspondence distance as a fraction of the diameter;
+    icp_kernel: Tukey robust-loss scale as a fraction of the diameter (0 = plain least squares);
+    icp_iterations: ICP iteration limit; icp_min_points: fewest scene points to run ICP;
+    icp_trim: share of the scene points (the best-fitting ones) whose point-to-plane RMS decides whether
+    the ICP pose is kept (see :func:`fit_rms`); icp_gate: a scene point farther than this fraction of the
+    diameter from every model point counts as an outlier at that distance; icp_starts: ICP runs from the
+    detection's pose and from up to ``icp_starts - 1`` of its ``alternatives`` and keeps the best-fitting result
+    (a wrong-way first pose is a local minimum that ICP alone cannot leave); icp_min_gain: the ICP pose is kept
+    only when it lowers that trimmed RMS by at least this fraction of the diameter (a smaller gain is within what
+    the model's point sampling itself contributes, and on a few points of a smooth surface ICP can slide a right
+    pose by centimetres for such a gain); icp_points: ICP and its acceptance test use at most this many of a
+    detection's scene points, evenly spread over them (0 = all; their cost grows with the points, and a stage 2
+    that pools several crop samples hands over several hundred), the score after ICP uses them all;
+    propagate: metres, a frame point belongs to a detection when its ``owner_votes`` nearest predicted points
+    within this distance are all that detection's members (ICP points);
+    centre_votes: instances from the box-centre votes alone (a two-stage model's stage 1, whose corners are
+    not trained): the detection's centre is their robust mean and its orientation is left to stage 2;
+    min_score: final detections scoring less are dropped (with ICP, by their score after ICP);
+    min_score_unrefined: the threshold of the unrefined detections (None: ``min_score``); a two-stage detection's
+    support before ICP is lower than after it, so the two get thresholds of their own;
+    support_distance: a two-stage detection's score is the share of its points within this fraction of the
+    diameter of the model surface under its pose (:func:`surface_support`), recomputed after ICP;
+    support_floor: metres, that distance is at least this much (:func:`support_radius`): a depth sensor's error
+    does not shrink with the object, and 2 % of a small object's diameter (2 mm for the ape) is below a Kinect
+    v1's median depth error near 1 m (2.4 mm), so right poses of small objects would score low.
+    """
+
+    tau: float = 0.8
+    cell: float = 0.02
+    min_votes: int = 3
+    mode_radius: float = 0.0
+    nms_fraction: float = 0.5
+    inlier_fraction: float = 0.15
+    icp: bool = False
+    icp_distance: float = 0.2
+    icp_kernel: float = 0.0
+    icp_iterations: int = 30
+    icp_min_points: int = 30
+    icp_trim: float = 0.7
+    icp_gate: float = 0.05
+    icp_starts: int = 8
+    icp_min_gain: float = 0.001
+    icp_points: int = 0
+    support_distance: float = 0.02
+    support_floor: float = 0.004
+    propagate: float = 0.01
+    owner_votes: int = 3
+    centre_votes: bool = False
+    min_score: float = 0.0
+    min_score_unrefined: float | None = None
+
+
+@dataclass
+class Detection:
+    """One detected object instance.
+
+    obj_id: object id; score: mean confidence of its votes x share of kept votes in [0, 1];
+    R: (3,3) float64; t: (3,) float64 metres (model -> camera); support: number of votes;
+    control_points: (9,3) float64 metres, the aggregated predicted control points (camera frame);
+    members: (S,) int64 rows of the prediction arrays that voted for it; refined: the ICP pose was kept;
+    icp: what ICP did - "" (not run), "accepted", "rejected" (it did not improve the fit: pose unchanged),
+    "skipped" (too few scene points);
+    points: (P,) int64 rows of the frame cloud that are this instance's (a two-stage model's crop foreground),
+    or None (ICP then carries ``members`` to the cloud); alternatives: other candidate poses [(R, t), ...], best
+    first (a two-stage model's other verified RANSAC hypotheses), from which ICP also starts.
+    """
+
+    obj_id: int
+    score: float
+    R: np.ndarray
+    t: np.ndarray
+    support: int
+    control_points: np.ndarray
+    members: np.ndarray = field(repr=False)
+    refined: bool = False
+    icp: str = ""
+    points: np.ndarray | None = field(default=None, repr=False)
+    alternatives: list | None = field(default=None, repr=False)
+
+    @property
+    def pose(self) -> np.ndarray:
+        """(4,4) float64 T_cam_model, metres."""
+        T = np.eye(4)
+        T[:3, :3], T[:3, 3] = self.R, self.t
+        return T
+
+
+def make_model_cloud(model_points: np.ndarray):
+    """An open3d cloud of model points (metres) with estimated normals (their sign does not matter)."""
+    # lazy: open3d loads in about a second; only ICP and the fit measure need it
+    import open3d as o3d
+
+    pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(model_points, np.float64)))
+    pc.estimate_normals(o3d.geometry.KDTreeSearchParamKNN(12))
+    return pc
+
+
+@dataclass
+class ObjectInfo:
+    """What the geometry needs of each object, by obj_id.
+
+    control_points: {obj_id: (9,3) metres model frame}; diameters: {obj_id: metres};
+    model_points: {obj_id: (P,3) metres model frame}.
+    """
+
+    control_points: dict[int, np.ndarray]
+    diameters: dict[int, float]
+    model_points: dict[int, np.ndarray]
+    _clouds: dict = field(default_factory=dict, repr=False)
+
+    @classmethod
+    def from_table(cls, table) -> "ObjectInfo":
+        """From an ``argen.h5.ObjectTable`` or the checkpoint's plain-list object dict."""
+        get = (lambda k: table[k]) if isinstance(table, dict) else (lambda k: getattr(table, k))
+        ids = [int(i) for i in get("ids")]
+        cps, dia, mp = get("control_points"), get("diameters"), get("model_points")
+        return cls({i: np.asarray(cps[k], np.float64) for k, i in enumerate(ids)},
+                   {i: float(dia[k]) for k, i in enumerate(ids)},
+                   {i: np.asarray(mp[k], np.float64) for k, i in enumerate(ids)})
+
+    def cloud(self, obj_id: int):
+        """The cached open3d model cloud with normals of ``obj_id``."""
+        if obj_id not in self._clouds:
+            self._clouds[obj_id] = make_model_cloud(self.model_points[obj_id])
+        return self._clouds[obj_id]
+
+    def surface(self, obj_id: int):
+        """(cKDTree of the model points, (P,3) their unit normals) of ``obj_id``, cached: the fit measure's model."""
+        key = ("surface", obj_id)
+        if key not in self._clouds:
+            self._clouds[key] = (cKDTree(np.asarray(self.model_points[obj_id], np.float64)),
+                                 np.asarray(self.cloud(obj_id).normals))
+        return self._clouds[key]

@@ -1,0 +1,91 @@
+"""Stage 1 (or the single-shot network) at inference: a frame -> per-point predictions (:class:`Predictions`: class
+probabilities, control-point votes, confidence). :func:`network_predictor` runs a checkpoint's network on CPU or
+GPU; :func:`oracle_predictor` returns the frame's ground-truth labels (checks the geometry alone)."""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+import torch
+
+from detector.stage1.dataset import inference_batch
+
+
+@dataclass
+class Predictions:
+    """Per-point predictions for one frame (K points).
+
+    xyz: (K,3) float metres; class_probs: (K,C+1) float, column 0 background, column c object ``class_ids[c-1]``;
+    class_ids: C object ids; control_points: (K,9,3) float metres (point + offsets); confidence: (K,) in [0,1];
+    timings: seconds spent, e.g. {"sampling", "network"}.
+    """
+
+    xyz: np.ndarray
+    class_probs: np.ndarray
+    class_ids: list[int]
+    control_points: np.ndarray
+    confidence: np.ndarray
+    timings: dict = field(default_factory=dict)
+
+    @property
+    def obj_ids(self) -> np.ndarray:
+        """(K,) int64 object id of each point's most likely class, 0 = background."""
+        lut = np.concatenate([[0], np.asarray(self.class_ids, np.int64)])
+        return lut[np.argmax(self.class_probs, axis=1)]
+
+
+Predictor = Callable[[object], Predictions]
+
+
+def oracle_predictor(num_points: int | None = None, seed: int = 0) -> Predictor:
+    """A predictor that returns the frame's ground truth: class = semantic label, control points = the per-point
+    labels, confidence 1. num_points: sample that many rows per frame (seeded) like the network; None = all."""
+
+    def predict(frame) -> Predictions:
+        n = len(frame.features)
+        rows = np.arange(n) if num_points is None or num_points >= n else \
+            np.sort(np.random.default_rng([seed, frame.scene_id, frame.im_id]).choice(n, num_points, replace=False))
+        ids = sorted(set(np.unique(frame.semantic).tolist()) - {0})
+        cls = np.searchsorted(ids, frame.semantic[rows]) + 1
+        cls[frame.semantic[rows] == 0] = 0
+        probs = np.eye(len(ids) + 1, dtype=np.float32)[cls]
+        return Predictions(frame.features[rows, :3].astype(np.float64), probs, ids,
+                           frame.control_points[rows].astype(np.float64), np.ones(len(rows)))
+
+    return predict
+
+
+def network_predictor(checkpoint, seed: int = 0, device: str | None = None) -> Predictor:
+    """A predictor running ``checkpoint.model`` (a :class:`detector.checkpoint.Checkpoint`) on one frame.
+
+    Sampling and neighbour indices as in training (``detector.stage1.dataset.inference_batch``); times "sampling" and
+    "network" (synchronised on GPU). On a GPU the neighbour indices are computed by the model (inside "network").
+    """
+    model = checkpoint.model
+    dev = torch.device(device) if device else next(model.parameters()).device
+    model.to(dev).eval()
+
+    def predict(frame) -> Predictions:
+        t0 = time.perf_counter()
+        batch = inference_batch(frame.features, checkpoint.model_config, checkpoint.num_points, seed,
+                                normalisation=checkpoint.normalisation or None, precompute=dev.type == "cpu")
+        feats = batch.pop("features").to(dev)
+        rows = batch.pop("point_index").numpy()
+        indices = {k: v.to(dev) for k, v in batch.items()}
+        t1 = time.perf_counter()
+        with torch.no_grad():
+            out = model(feats, indices or None)
+            if dev.type == "cuda":
+                torch.cuda.synchronize(dev)
+        t2 = time.perf_counter()
+        kp = out["keypoints"][0].cpu().numpy()
+        xyz = np.asarray(frame.features, np.float64)[rows[kp], :3]  # metres, exactly the input points
+        offsets = out["offsets"][0].double().cpu().numpy()
+        return Predictions(xyz, torch.softmax(out["logits"][0].float(), -1).cpu().numpy(), list(checkpoint.class_ids),
+                           xyz[:, None, :] + offsets, out["confidence"][0].double().cpu().numpy(),
+                           {"sampling": t1 - t0, "network": t2 - t1})
+
+    return predict

@@ -1,0 +1,92 @@
+"""Stage-2 training items: each frame's usable instances as object-centred crops (:mod:`detector.stage2.crops`),
+with an in-memory cache of the frames' crop regions, and their batching."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from detector.data.augment import input_normalisation
+from detector.data.frames import FrameSource
+from detector.stage2.crops import CropFrame, crop_region, training_crop
+
+
+class CropDataset(FrameSource):
+    """Stage-2 training items: every usable instance of a frame as an object-centred crop (:mod:`detector.stage2.crops`).
+
+    ``dataset[(epoch, i)]`` is frame ``i``'s crops: ``features`` (c, n, 9), ``cls`` (c,) int64 class index
+    (``class_ids[cls]`` is the object id), ``fg`` (c, n) float32, ``coords`` (c, S, n, 3) float32 model coordinates
+    in diameters under each of the S symmetries (padded to the most any object has), ``sym_mask`` (c, S) bool and
+    ``frame`` (c,) int64. An instance is used when its object is in ``class_ids``, its visible fraction and point
+    count reach the crop config's minimums and its crop holds enough points; c may be 0.
+    Items are pure functions of (seed, epoch, frame). Batches join items with :func:`collate_crops`.
+
+    cache_mb: each process keeps the :func:`detector.stage2.crops.crop_region` of the frames it reads, up to this many MB
+    in all, and cuts later epochs' crops from memory: the same crops without reading and decompressing the frame
+    again (with the whole label file read about 35 times in a default run, that is most of the data cost of a
+    step). 0 = no cache.
+    """
+
+    def __init__(self, path: str | Path, crop_cfg, augment: bool = False, seed: int = 0,
+                 class_ids: Sequence[int] | None = None, cache_mb: float = 0.0):
+        super().__init__(path, seed, class_ids, augment)
+        self.crop_cfg = crop_cfg
+        ids = self.objects["ids"]
+        self.sym = {int(i): np.asarray(s, np.float32) for i, s in zip(ids, self.objects["sym_transforms"])}
+        self.diameters = {int(i): float(d) for i, d in zip(ids, self.objects["diameters"])}
+        self.max_sym = max(len(self.sym[c]) for c in self.class_ids)
+        self._crop_diameters = {c: self.diameters[c] for c in self.class_ids}  # the objects whose crops are cut
+        self.cache_bytes = int(max(cache_mb, 0.0) * 2 ** 20)
+        self._cache: dict[int, CropFrame] = {}
+        self._cached = 0
+
+    def __getstate__(self) -> dict:
+        state = super().__getstate__()
+        state["_cache"], state["_cached"] = {}, 0  # each worker fills its own
+        return state
+
+    def _frame(self, key: int | tuple[int, int]):
+        """(crop region, generator, frame index) of item ``key``, from the cache when it holds the frame."""
+        epoch, index = key if isinstance(key, tuple) else (0, key)
+        region = self._cache.get(int(index))
+        if region is not None:
+            return region, self.rng(epoch, index), int(index)
+        frame, rng, index = self.read(key)
+        region = crop_region(frame, self._crop_diameters, self.crop_cfg)
+        if self._cached + region.nbytes <= self.cache_bytes:
+            self._cache[index] = region
+            self._cached += region.nbytes
+        return region, rng, index
+
+    def __getitem__(self, key: int | tuple[int, int]) -> dict[str, torch.Tensor]:
+        frame, rng, index = self._frame(key)
+        cfg, n, S = self.crop_cfg, self.crop_cfg.num_points, self.max_sym
+        inst = frame.instances
+        crops = []
+        for g in range(len(inst)):
+            oid = int(inst.obj_id[g])
+            if oid not in self.class_ids or inst.visib_fract[g] < cfg.min_visib or inst.num_points[g] < cfg.min_object_points:
+                continue
+            c = training_crop(frame, g, self.diameters[oid], self.sym[oid], cfg, rng,
+                                  input_normalisation(cfg.colour), self.augment)
+            if c is not None:
+                crops.append((self.class_ids.index(oid), c))
+        feats = np.zeros((len(crops), n, 9), np.float32)
+        fg = np.zeros((len(crops), n), np.float32)
+        coords = np.zeros((len(crops), S, n, 3), np.float32)
+        mask = np.zeros((len(crops), S), bool)
+        for k, (_, c) in enumerate(crops):
+            feats[k], fg[k] = c["features"], c["fg"]
+            s = len(c["coords"])
+            coords[k, :s], mask[k, :s] = c["coords"], True
+        return {"features": torch.from_numpy(feats), "cls": torch.tensor([c for c, _ in crops], dtype=torch.int64),
+                "fg": torch.from_numpy(fg), "coords": torch.from_numpy(coords), "sym_mask": torch.from_numpy(mask),
+                "frame": torch.full((len(crops),), index, dtype=torch.int64)}
+
+
+def collate_crops(items: Sequence[dict[str, torch.Tensor]]) -> dict[str, torch.Tensor]:
+    """Join crop items (see :class:`CropDataset`) along their first dimension."""
+    return {k: torch.cat([it[k] for it in items]) for k in items[0]}

@@ -1,0 +1,1 @@
+"""What both stages' training loops share: schedule, metrics log, devices, resume, checkpoint files, DDP."""

@@ -1,0 +1,75 @@
+"""Files written under the older names still load: model files and stage-2 checkpoints with the keys ``detect``,
+``pose`` and ``extra.pose_config`` (the shipped checkpoints/lm8.pt and ycbv3.pt are such files), two_stage.yaml
+with a ``pose`` section (and ``--set pose.KEY``), and run folders with ``detect/`` and ``pose/``."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+import torch
+import yaml
+
+from detector.checkpoint import load_checkpoint
+from detector.errors import DetectorError
+from detector.training.checkpoint_file import FORMAT, TWO_STAGE_VERSION, read_checkpoint, rename_old_keys
+from detector.two_stage import load_two_stage_config, stage_dirs
+
+CHECKPOINTS = Path(__file__).resolve().parents[1] / "checkpoints"
+
+
+def test_rename_old_keys():
+    old = {"format": FORMAT, "version": 2, "detect": {"step": 1}, "pose": {"step": 2},
+           "extra": {"pose_config": {"tau": 0.1}, "train_file": "x.h5"}}
+    new = rename_old_keys(old)
+    assert new == {"format": FORMAT, "version": TWO_STAGE_VERSION, "stage1": {"step": 1}, "stage2": {"step": 2},
+                   "extra": {"geometry_config": {"tau": 0.1}, "train_file": "x.h5"}}
+    assert new["stage1"] is old["detect"]  # renamed, not copied
+    assert rename_old_keys({"format": FORMAT, "version": 2, "pose": {"step": 3}}) == \
+        {"format": FORMAT, "version": TWO_STAGE_VERSION, "stage2": {"step": 3}}  # a stage-2 run's last.pt
+    for unchanged in ({"format": FORMAT, "version": 1, "step": 4, "extra": {"pose_config": {}}},
+                      {"format": FORMAT, "version": 3, "stage2": {"step": 5}}):
+        assert rename_old_keys(unchanged) == unchanged
+
+
+@pytest.mark.parametrize("name", ["lm8.pt", "ycbv3.pt"])
+def test_shipped_checkpoints_load_under_the_new_names(name):
+    path = CHECKPOINTS / name
+    raw = torch.load(path, map_location="cpu", weights_only=True)
+    assert raw["version"] == 2 and {"detect", "pose"} <= set(raw) and "pose_config" in raw["extra"]  # the old names
+    payload = read_checkpoint(path)
+    assert payload["version"] == TWO_STAGE_VERSION and {"stage1", "stage2"} <= set(payload)
+    assert not {"detect", "pose"} & set(payload) and payload["extra"]["geometry_config"] == raw["extra"]["pose_config"]
+    ck = load_checkpoint(path)
+    assert ck.stage2_net is not None and ck.stage2["class_ids"] == ck.class_ids
+    assert ck.geometry_config == raw["extra"]["pose_config"]
+
+
+def test_an_old_stage2_checkpoint_reads_as_stage2(tmp_path):
+    path = tmp_path / "last.pt"
+    torch.save({"format": FORMAT, "version": 2, "pose": {"step": 7, "class_ids": [1]}}, path)
+    assert read_checkpoint(path)["stage2"]["step"] == 7
+    with pytest.raises(DetectorError, match="holds a stage-2 network only"):
+        load_checkpoint(path)
+
+
+def test_two_stage_yaml_with_a_pose_section(tmp_path):
+    path = tmp_path / "two_stage.yaml"
+    path.write_text(yaml.safe_dump({"stage1": {"steps": 5}, "stage2": {"steps": 6}, "pose": {"tau": 0.3},
+                                    "infer": {"samples": 2}}))
+    cfg = load_two_stage_config(path, {"pose.min_score": 0.5, "stage2.cache_mb": 1.0})
+    assert cfg.geometry == {"tau": 0.3, "min_score": 0.5} and cfg.stage2 == {"steps": 6, "cache_mb": 1.0}
+    s1, s2, geometry, infer = cfg.resolved()
+    assert (s1.steps, s2.steps, geometry["tau"], infer["samples"]) == (5, 6, 0.3, 2)
+    assert load_two_stage_config(None, {"geometry.tau": 0.4}).geometry == {"tau": 0.4}
+    with pytest.raises(DetectorError, match="unknown two-stage option"):
+        load_two_stage_config(None, {"detect.tau": 0.4})
+
+
+def test_stage_dirs(tmp_path):
+    assert stage_dirs(tmp_path) == (tmp_path / "stage1", tmp_path / "stage2")  # a new run
+    (tmp_path / "detect").mkdir()
+    (tmp_path / "pose").mkdir()
+    assert stage_dirs(tmp_path) == (tmp_path / "detect", tmp_path / "pose")  # a run from before the names changed
+    (tmp_path / "stage1").mkdir()
+    assert stage_dirs(tmp_path) == (tmp_path / "stage1", tmp_path / "stage2")
