@@ -1,0 +1,1 @@
+"""Label-file frames, the augmentations both stages share (colour, camera) and batching."""

@@ -1,0 +1,101 @@
+"""Colour normalisation of the network input and the augmentations both stages train with: the frame-level roll,
+jitter and colour change of stage 1 (:func:`augment`), and the colour modes (``light``, ``camera``:
+:func:`camera_colour`, colours as another camera would give them) that both stages offer."""
+
+from __future__ import annotations
+
+import numpy as np
+
+
+def normalised_colour(rgb: np.ndarray, normalisation: dict) -> np.ndarray:
+    """Network colour input: ``(rgb - rgb_mean) / rgb_std``. rgb: (n,3) in [0, 1]; normalisation: {"rgb_mean",
+    "rgb_std"} (``detector.data.augment.NORMALISATION``). Returns (n,3) float32."""
+    return ((rgb - normalisation["rgb_mean"]) / normalisation["rgb_std"]).astype(np.float32)
+
+
+#: The colour augmentations of both stages' training: "light" (a small gain and noise) or "camera" (camera_colour).
+COLOUR_MODES = ("light", "camera")
+
+#: camera_colour's ranges: exposure gain, per-channel white-balance gain, gamma, and the chances of a grey crop and
+#: of one without colour.
+EXPOSURE = (0.5, 1.6)
+
+WHITE_BALANCE = 0.15
+
+GAMMA = (0.6, 1.6)
+
+P_GREY, P_NO_COLOUR = 0.1, 0.05
+
+
+def camera_colour(rgb: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    """Colours as another camera might give them: ``(rgb * exposure * white_balance) ** gamma`` plus 2 % noise, with
+    the exposure and gamma drawn log-uniformly from :data:`EXPOSURE` and :data:`GAMMA`; with chance
+    :data:`P_GREY` the crop is grey, with :data:`P_NO_COLOUR` all zeros (a depth-only input).
+
+    rgb: (n,3) in [0, 1]. Returns (n,3) float32 in [0, 1].
+    """
+    u = rng.random()
+    if u < P_NO_COLOUR:
+        return np.zeros_like(rgb, dtype=np.float32)
+    gain = np.exp(rng.uniform(*np.log(EXPOSURE))) * rng.uniform(1 - WHITE_BALANCE, 1 + WHITE_BALANCE, 3)
+    out = np.clip(np.asarray(rgb, np.float64) * gain, 0.0, 1.0) ** np.exp(rng.uniform(*np.log(GAMMA)))
+    if u < P_NO_COLOUR + P_GREY:
+        out = np.repeat(out.mean(1, keepdims=True), 3, axis=1)
+    return np.clip(out + rng.normal(0.0, 0.02, out.shape), 0.0, 1.0).astype(np.float32)
+
+
+#: Colour normalisation of the network input; the label file stores colour in [0, 1].
+NORMALISATION: dict[str, float] = {"rgb_mean": 0.5, "rgb_std": 0.25}
+
+#: Augmentation strengths (metres, radians, colour units in [0, 1]).
+JITTER_SIGMA = 0.002
+
+JITTER_CLIP = 0.005
+
+ROTATION_MAX = np.deg2rad(15.0)
+
+BRIGHTNESS = 0.15
+
+COLOUR_SIGMA = 0.02
+
+
+def normalise_features(features: np.ndarray, normalisation: dict[str, float] | None = None) -> np.ndarray:
+    """Network input from label-file features: colour centred and scaled, xyz and normals unchanged.
+
+    features: (N, 9) float32 [X, Y, Z, R, G, B, Nx, Ny, Nz] with colour in [0, 1]. Returns (N, 9) float32.
+    """
+    norm = NORMALISATION if normalisation is None else normalisation
+    out = np.array(features, dtype=np.float32, copy=True)
+    out[:, 3:6] = normalised_colour(out[:, 3:6], norm)
+    return out
+
+
+def rot_z(angle: float) -> np.ndarray:
+    """Rotation about the camera's optical (z) axis by ``angle`` radians: (3, 3) float32."""
+    c, s = np.cos(angle), np.sin(angle)
+    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]], dtype=np.float32)
+
+
+def augment(features: np.ndarray, control_points: np.ndarray, rng: np.random.Generator, colour: str = "light"
+            ) -> tuple[np.ndarray, np.ndarray]:
+    """Light augmentation: a small roll about the camera axis (points, normals and labels alike), xyz jitter,
+    and a colour change: ``colour`` "light" is a brightness gain of +-15 % and colour noise, "camera" the whole
+    frame's colours as another camera would give them (:func:`detector.data.augment.camera_colour`: exposure, white
+    balance, gamma, sometimes grey or none).
+
+    features: (N, 9) float32, colour in [0, 1]; control_points: (N, 9, 3) float32 metres (zeros = background).
+    Returns new arrays of the same shapes; background control points stay zero.
+    """
+    R = rot_z(rng.uniform(-ROTATION_MAX, ROTATION_MAX))
+    out = np.array(features, dtype=np.float32, copy=True)
+    out[:, 0:3] = out[:, 0:3] @ R.T
+    out[:, 6:9] = out[:, 6:9] @ R.T
+    cps = (control_points @ R.T).astype(np.float32)
+    jitter = np.clip(rng.normal(0.0, JITTER_SIGMA, (len(out), 3)), -JITTER_CLIP, JITTER_CLIP)
+    out[:, 0:3] += jitter.astype(np.float32)
+    if colour == "camera":
+        out[:, 3:6] = camera_colour(out[:, 3:6], rng)
+    else:
+        gain = rng.uniform(1.0 - BRIGHTNESS, 1.0 + BRIGHTNESS)
+        out[:, 3:6] = np.clip(out[:, 3:6] * gain + rng.normal(0.0, COLOUR_SIGMA, (len(out), 3)), 0.0, 1.0)
+    return out, cps

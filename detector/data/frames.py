@@ -1,0 +1,117 @@
+"""A label file's frames for the datasets of both stages, read only through :mod:`argen.h5`: opening with one-line
+errors, shape checks, a lazily opened per-process handle, the object table as plain lists, and each item's
+generator from (seed, epoch, frame index), so loader workers, resumed runs and reruns see the same items."""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Sequence
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from argen.h5 import LabelFile
+from detector.errors import DetectorError, argen_errors
+
+
+def open_label_file(path: str | Path):
+    """Open a label file through :mod:`argen.h5`; a missing or malformed file is a :class:`DetectorError`."""
+
+    with argen_errors():
+        return LabelFile(Path(path))
+
+
+def check_frame(frame, path: Path, i: int) -> None:
+    """Raise a one-line :class:`DetectorError` when a frame's arrays have the wrong shape or dtype."""
+    n = len(frame.features)
+    checks = [
+        ("points/features", frame.features, (n, 9), np.floating),
+        ("points/semantic", frame.semantic, (n,), np.integer),
+        ("points/instance", frame.instance, (n,), np.integer),
+        ("control points", frame.control_points, (n, 9, 3), np.floating),
+    ]
+    for name, arr, shape, kind in checks:
+        arr = np.asarray(arr)
+        if arr.shape != shape or not np.issubdtype(arr.dtype, kind):
+            want = "float" if kind is np.floating else "integer"
+            raise DetectorError(f"{path}: frame {i}: {name} has shape {arr.shape} and dtype {arr.dtype}, "
+                                f"expected {shape} {want}")
+    if n == 0:
+        raise DetectorError(f"{path}: frame {i} has no points")
+
+
+class FrameSource(torch.utils.data.Dataset):
+    """A label file's frames for a Dataset: opened lazily in each process (never pickled into workers), the
+    object table, the classes to learn (``class_ids``, sorted object ids) and the per-item generator."""
+
+    def __init__(self, path: str | Path, seed: int = 0, class_ids: Sequence[int] | None = None,
+                 augment: bool = False):
+        self.path = Path(path)
+        self.seed = int(seed)
+        self.augment = bool(augment)
+        self._file = None
+        self._pid = None
+        lf = open_label_file(self.path)
+        try:
+            with argen_errors():
+                self.num_frames = int(lf.num_frames)
+                self.objects = object_table_dict(lf.objects)
+                if self.num_frames == 0:
+                    raise DetectorError(f"{self.path}: the label file has no frames")
+                check_frame(lf.frame(0), self.path, 0)  # one frame checks the shared datasets' shapes and dtypes
+        finally:
+            lf.close()
+        ids = sorted(int(i) for i in (self.objects["ids"] if class_ids is None else class_ids))
+        if not ids:
+            raise DetectorError(f"{self.path}: no object classes to train on")
+        self.class_ids = ids
+
+    def __len__(self) -> int:
+        return self.num_frames
+
+    def __getstate__(self) -> dict:
+        state = dict(self.__dict__)
+        state["_file"], state["_pid"] = None, None
+        return state
+
+    def _label_file(self):
+        if self._file is None or self._pid != os.getpid():
+            self._file = open_label_file(self.path)
+            self._pid = os.getpid()
+        return self._file
+
+    def close(self) -> None:
+        """Close this process's handle on the label file (reopened on the next item)."""
+        if self._file is not None and self._pid == os.getpid():
+            self._file.close()
+        self._file, self._pid = None, None
+
+    def rng(self, epoch: int, index: int) -> np.random.Generator:
+        """The generator of one item, from (seed, epoch, frame index)."""
+        return np.random.default_rng([self.seed, int(epoch), int(index)])
+
+    def read(self, key: int | tuple[int, int]):
+        """(frame labels, generator, frame index) of item ``key`` = index or (epoch, index); checked."""
+        epoch, index = key if isinstance(key, tuple) else (0, key)
+        index = int(index)
+        if not 0 <= index < self.num_frames:
+            raise IndexError(f"frame {index} out of range (0..{self.num_frames - 1})")
+        with argen_errors():
+            frame = self._label_file().frame(index)
+        check_frame(frame, self.path, index)
+        return frame, self.rng(epoch, index), index
+
+
+def object_table_dict(objects) -> dict:
+    """The label file's object table as plain lists (for checkpoints): ids, names, diameters, symmetric,
+    control_points (M, 9, 3) metres, model_points (M, P, 3) metres, sym_transforms per object (S, 4, 4)."""
+    return {
+        "ids": [int(i) for i in objects.ids],
+        "names": [str(n) for n in objects.names],
+        "diameters": [float(d) for d in objects.diameters],
+        "symmetric": [bool(s) for s in objects.symmetric],
+        "control_points": np.asarray(objects.control_points, dtype=np.float32).tolist(),
+        "model_points": np.asarray(objects.model_points, dtype=np.float32).tolist(),
+        "sym_transforms": [np.asarray(s, dtype=np.float32).tolist() for s in objects.sym_transforms],
+    }
