@@ -8,7 +8,8 @@ from typing import Optional
 
 import typer
 
-from argen.cli.common import check_placeable, load_config, parse_shard, user_errors
+from argen.cli.common import (capture_objects, load_config, models_option, objects_option, out_option, overwrite_option,
+                              parse_shard, quiet_option, sets_option, user_errors, workers_option)
 from argen.cli.label import register as register_label
 from argen.cli.models import register as register_models
 from argen.cli.real import register as register_real
@@ -21,12 +22,11 @@ app = typer.Typer(add_completion=False, no_args_is_help=True, pretty_exceptions_
 @app.command("capture-sim")
 @user_errors
 def capture_sim(
-    out: Path = typer.Option(..., "--out", help="output BOP dataset folder"),
+    out: Path = out_option(),
     scene: str = typer.Option("linemod", "--scene", help="template name (linemod, lchf) or a YAML file"),
     frames: int = typer.Option(20, "--frames", help="frames to capture (accepted + rejected)"),
-    models: Optional[Path] = typer.Option(None, "--models", help="BOP models folder (PLY in mm), or a folder of "
-                                           "plain meshes (imported on the fly); default: built-in objects"),
-    objects: Optional[str] = typer.Option(None, "--objects", help="comma-separated object names or ids"),
+    models: Optional[Path] = models_option(),
+    objects: Optional[str] = objects_option(),
     seed: Optional[int] = typer.Option(None, "--seed", help="random seed (default: the template's)"),
     noise: Optional[str] = typer.Option(None, "--noise", help="'on' (the sensor's noise model) or 'none' "
                                         "(default: the template's)"),
@@ -34,29 +34,22 @@ def capture_sim(
                                          "(time of flight), realsense_d435 (active stereo)"),
     camera: Optional[Path] = typer.Option(None, "--camera", help="a BOP camera.json (fx, fy, cx, cy, width, height): "
                                           "your sensor's intrinsics and image size, over the sensor profile's"),
-    workers: int = typer.Option(1, "--workers", help="processes, each with its own renderer"),
-    overwrite: bool = typer.Option(False, "--overwrite", help="replace an output folder made with other options"),
-    sets: list[str] = typer.Option([], "--set", help="override any template key, e.g. --set camera.distance=[0.5,1.0]"),
-    quiet: bool = typer.Option(False, "--quiet", help="no progress bar"),
+    workers: int = workers_option(),
+    overwrite: bool = overwrite_option(),
+    sets: list[str] = sets_option(),
+    quiet: bool = quiet_option(),
     shard: Optional[str] = typer.Option(None, "--shard", help="I/N: make only frames with index % N == I "
                                         "(one of N machines); join the shards with `argen merge`"),
 ):
     """Simulate an AR capture (boards, placed objects, rendering, sensor noise) and write BOP scenes."""
     # lazy: pyrender, open3d and trimesh take seconds to load; --help and the other commands need none
-    from argen.models.meshimport import load_any_models
     from argen.sim.capture import CaptureRequest, run_capture
 
     if frames < 1:
         raise ArgenError(f"--frames must be at least 1, got {frames}")
-    if workers < 1:
-        raise ArgenError(f"--workers must be at least 1, got {workers}")
     cfg = load_config(scene, seed, noise, sets, objects, sensor, camera)
-    objs, notes = load_any_models(models, cfg.objects or None)
-    for line in notes:
-        typer.echo(line, err=True)
-    check_placeable(cfg, objs)
-    req = CaptureRequest(cfg=cfg, objects=objs, out=out, frames=frames, workers=workers,
-                         models_source=str(models.resolve()) if models else "builtin",
+    objs, source = capture_objects(cfg, models, workers)
+    req = CaptureRequest(cfg=cfg, objects=objs, out=out, frames=frames, workers=workers, models_source=source,
                          overwrite=overwrite, progress=not quiet, shard=parse_shard(shard))
     summary = run_capture(req)
     typer.echo(f"{out}: {summary.line()}")

@@ -1,6 +1,6 @@
 """What the ``argen`` commands share: the error wrapper (user errors become one line on stderr, exit 2), the
 template loader with the CLI's shortcuts (``--set`` parsed by :func:`argen.settings.parse_sets`), ``--shard``
-parsing and the placement check."""
+parsing, the placement check, and the options and steps both capture commands (``capture-sim``, ``capture``) take."""
 
 from __future__ import annotations
 
@@ -101,3 +101,49 @@ def check_placeable(cfg, objs) -> None:
     if bad:
         raise ArgenError(f"impossible placement: {', '.join(bad)} cannot fit on the board's free area "
                          f"({2 * half:.3f} m square); use a larger board (board.markers_per_side, board.marker_gap)")
+
+
+# The options both capture commands take (each call makes a new typer.Option: typer keeps state in it)
+def out_option():
+    return typer.Option(..., "--out", help="output BOP dataset folder")
+
+
+def models_option():
+    return typer.Option(None, "--models", help="BOP models folder (PLY in mm), or a folder of plain meshes (imported "
+                        "on the fly); default: built-in objects")
+
+
+def objects_option():
+    return typer.Option(None, "--objects", help="comma-separated object names or ids")
+
+
+def workers_option():
+    return typer.Option(1, "--workers", help="processes, each with its own renderer")
+
+
+def overwrite_option():
+    return typer.Option(False, "--overwrite", help="replace an output folder made with other options")
+
+
+def sets_option():
+    return typer.Option([], "--set", help="override any template key, e.g. --set camera.distance=[0.5,1.0]")
+
+
+def quiet_option():
+    return typer.Option(False, "--quiet", help="no progress bar")
+
+
+def capture_objects(cfg, models: Optional[Path], workers: int) -> tuple[list, str]:
+    """The objects a capture places (``--models`` or the built-in ones, with the template's selection), after the
+    checks both capture commands make: at least one worker, and every object fits the board in some resting pose.
+    Import notes go to stderr. Returns (objects, models_source for the dataset's argen.json)."""
+    # lazy: trimesh loads slowly; `argen --help` does not need it
+    from argen.models.meshimport import load_any_models
+
+    if workers < 1:
+        raise ArgenError(f"--workers must be at least 1, got {workers}")
+    objs, notes = load_any_models(models, cfg.objects or None)
+    for line in notes:
+        typer.echo(line, err=True)
+    check_placeable(cfg, objs)
+    return objs, str(models.resolve()) if models else "builtin"

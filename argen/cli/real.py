@@ -7,7 +7,9 @@ from typing import Optional
 
 import typer
 
-from argen.cli.common import NOISE_CHOICES, check_placeable, load_config, user_errors
+from argen.cli.common import (NOISE_CHOICES, capture_objects, load_config, models_option,
+                              objects_option, out_option, overwrite_option, quiet_option, sets_option, user_errors,
+                              workers_option)
 from argen.errors import ArgenError
 
 
@@ -20,12 +22,10 @@ def register(app: typer.Typer) -> None:
         recording: Path = typer.Option(..., "--recording", help="recording: a folder (rgb/ + depth/ + camera.json; "
                                        "TUM's rgb.txt + depth.txt; or colour and 16-bit depth images + camera.json) "
                                        "or a ROS 1 .bag (RealSense)"),
-        out: Path = typer.Option(..., "--out", help="output BOP dataset folder"),
-        models: Optional[Path] = typer.Option(None, "--models", help="BOP models folder (PLY in mm), or a "
-                                               "folder of plain meshes (imported on the fly); default: built-in "
-                                               "objects"),
+        out: Path = out_option(),
+        models: Optional[Path] = models_option(),
         scene: str = typer.Option("linemod", "--scene", help="template (board, placement, noise) or a YAML file"),
-        objects: Optional[str] = typer.Option(None, "--objects", help="comma-separated object names or ids"),
+        objects: Optional[str] = objects_option(),
         seed: Optional[int] = typer.Option(None, "--seed", help="random seed of the placements"),
         noise: Optional[str] = typer.Option(None, "--noise", help="'on' or 'none': sensor noise on the virtual "
                                             "objects' depth (default: the template's)"),
@@ -40,32 +40,25 @@ def register(app: typer.Typer) -> None:
                                               "(default: the template's plane.support, auto)"),
         occlusion_margin: float = typer.Option(0.003, "--occlusion-margin", help="metres a real surface must be in "
                                                "front of a virtual one to hide it"),
-        workers: int = typer.Option(1, "--workers", help="processes, each with its own renderer"),
-        overwrite: bool = typer.Option(False, "--overwrite", help="replace an output folder made with other options"),
-        sets: list[str] = typer.Option([], "--set", help="override any template key"),
-        quiet: bool = typer.Option(False, "--quiet", help="no progress bar"),
+        workers: int = workers_option(),
+        overwrite: bool = overwrite_option(),
+        sets: list[str] = sets_option(),
+        quiet: bool = quiet_option(),
     ):
         """Composite virtual objects into a recorded RGB-D sequence, on the printed board or, without one, on the
         dominant horizontal plane; write BOP scenes."""
         # lazy: pyrender, open3d and trimesh take seconds to load; --help and the other commands need none
-        from argen.models.meshimport import load_any_models
         from argen.real.capture import run_real_capture
         from argen.real.readers import camera_arg, open_any
         from argen.sim.capture import CaptureRequest
 
-        if workers < 1:
-            raise ArgenError(f"--workers must be at least 1, got {workers}")
         rec = open_any(recording, depth_scale, camera_arg(camera))
         if rec.camera_source == "default":
             typer.echo(f"{recording}: no camera.json; using the TUM benchmark's default intrinsics (fx = fy = 525, "
                        "cx = 319.5, cy = 239.5); pass --camera to change them", err=True)
         cfg = load_config(scene, seed, noise, sets + ([f"plane.support={support}"] if support else []), objects, sensor)
-        objs, notes = load_any_models(models, cfg.objects or None)
-        for line in notes:
-            typer.echo(line, err=True)
-        check_placeable(cfg, objs)
-        req = CaptureRequest(cfg=cfg, objects=objs, out=out, frames=len(rec), workers=workers,
-                             models_source=str(models.resolve()) if models else "builtin",
+        objs, source = capture_objects(cfg, models, workers)
+        req = CaptureRequest(cfg=cfg, objects=objs, out=out, frames=len(rec), workers=workers, models_source=source,
                              overwrite=overwrite, progress=not quiet)
         summary = run_real_capture(req, rec, occlusion_margin)
         typer.echo(f"{out}: {summary.line()}")
