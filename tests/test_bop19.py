@@ -189,7 +189,8 @@ def test_reproduces_the_bop_toolkits_errors_and_scores(tmp_path):
     """The BOP toolkit (commit cea62d6, see the fixture's provenance) on lm8.pt's CSV of a 4-frame linemod capture:
     MSSD and MSPD per estimate and instance to 1e-5 mm / px; VSD within 0.02 (argen's captures put pixel centres at
     integer K coordinates, the toolkit's renderer half a pixel off) and within 1e-3 when rendered its way; the four
-    figures within 0.01, and within 1e-3 rendered its way."""
+    figures within 0.01, and within 1e-3 rendered its way. When argen's scenes or lm8.pt change, remake the fixture
+    with the toolkit in one command: BOP_TOOLKIT=... BOP_TOOLKIT_VENV=... tests/fixtures/make_bop19_fixture.sh."""
     fx = json.loads(FIXTURE.read_text())
     r = CliRunner().invoke(argen_app, ["capture-sim", "--scene", "linemod", "--models", str(DATA / "lm/models"),
                                        "--frames", "6", "--seed", "5", "--out", str(tmp_path / "lmcap"), "--quiet"])
