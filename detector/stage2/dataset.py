@@ -34,6 +34,7 @@ class CropDataset(FrameSource):
                  class_ids: Sequence[int] | None = None, cache_mb: float = 0.0):
         super().__init__(path, seed, class_ids, augment)
         self.crop_cfg = crop_cfg
+        self.normalisation = input_normalisation(crop_cfg.colour)  # the network input of every crop
         ids = self.objects["ids"]
         self.sym = {int(i): np.asarray(s, np.float32) for i, s in zip(ids, self.objects["sym_transforms"])}
         self.diameters = {int(i): float(d) for i, d in zip(ids, self.objects["diameters"])}
@@ -70,8 +71,8 @@ class CropDataset(FrameSource):
             oid = int(inst.obj_id[g])
             if oid not in self.class_ids or inst.visib_fract[g] < cfg.min_visib or inst.num_points[g] < cfg.min_object_points:
                 continue
-            c = training_crop(frame, g, self.diameters[oid], self.sym[oid], cfg, rng,
-                                  input_normalisation(cfg.colour), self.augment)
+            c = training_crop(frame, g, self.diameters[oid], self.sym[oid], cfg, rng, self.normalisation,
+                                  self.augment)
             if c is not None:
                 crops.append((self.class_ids.index(oid), c))
         feats = np.zeros((len(crops), n, 9), np.float32)

@@ -72,7 +72,7 @@ class Stage2TrainConfig:
 
 
 def stage2_payload(net: CropNet, cfg: Stage2TrainConfig, class_ids: list[int], objects: dict, step: int,
-                 train_state: dict | None = None) -> dict:
+                   train_state: dict | None = None) -> dict:
     """The stage-2 part of a checkpoint: weights, configs, classes and the object table (plain values)."""
     return {"kind": STAGE2_KIND, "model_state": {k: v.detach().cpu() for k, v in net.state_dict().items()},
             "net_config": cfg.net.to_dict(), "crop_config": cfg.crop.to_dict(), "class_ids": list(class_ids),
