@@ -345,3 +345,37 @@ def test_dark_and_textureless_dropout_need_colour():
     cfg = NoiseConfig(**OFF, textureless_dropout=0.5)
     out = apply_noise(d, small_K(100, 200), cfg, np.random.default_rng(7), rgb=tex)
     assert (out[:, 110:] == 0).mean() == pytest.approx(0.5, abs=0.04) and (out[:, :90] > 0).all()
+
+
+# ------------------------------------------------------------------------------------ native pitch
+
+
+def test_noise_at_the_sensors_own_pitch_when_the_image_is_finer():
+    """An image registered to a narrower camera (fx twice the depth camera's) gets the depth camera's noise:
+    constant over each 2 x 2 block of image pixels, edge holes twice as wide in image pixels, and the same
+    axial statistics as at the native pitch. With native_fx equal to fx nothing changes, draw for draw."""
+    from argen.sim.noise import native_pitch
+
+    fine_K = small_K(160, 200)
+    fine_K[0, 0] *= 2.0
+    fine_K[1, 1] *= 2.0
+    depth = np.full((160, 200), 0.8, np.float32)
+    depth[:, 100:] = 1.2
+    base = NoiseConfig(random_dropout=0.0, edge_dropout=1.0, lateral_px=0.0, native_fx=float(K[0, 0]))
+    assert native_pitch(fine_K, base) == pytest.approx(2.0)
+    out = apply_noise(depth, fine_K, base, np.random.default_rng(3))
+    blocks = out.reshape(80, 2, 100, 2)
+    assert np.all(blocks == blocks[:, :1, :, :1])  # one measurement per sensor pixel
+    # the edge band: at the native pitch both sensor pixels beside the jump are lost = 4 image pixels a row
+    lost = (out == 0).sum(axis=1)
+    assert np.all(lost == 4)
+    direct = apply_noise(depth, fine_K, dataclasses.replace(base, native_fx=0.0), np.random.default_rng(3))
+    assert np.all((direct == 0).sum(axis=1) == 2)  # drawn at the image's pitch: one pixel each side
+    # axial noise of the flat part is the model's at 0.8 m either way
+    flat = out[:, :90][out[:, :90] > 0]
+    assert abs(np.std(flat - 0.8) - float(axial_sigma(np.float32(0.8), np.float32(0.0), base))) < 3e-4
+    # native_fx equal to the image's fx: identical draws to the plain model
+    same = dataclasses.replace(base, native_fx=float(fine_K[0, 0]))
+    a = apply_noise(depth, fine_K, same, np.random.default_rng(4))
+    b = apply_noise(depth, fine_K, dataclasses.replace(base, native_fx=0.0), np.random.default_rng(4))
+    assert np.array_equal(a, b)

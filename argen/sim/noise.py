@@ -331,9 +331,58 @@ def _luminance(rgb: np.ndarray) -> np.ndarray:
     return rgb[..., 0] * np.float32(0.299) + rgb[..., 1] * np.float32(0.587) + rgb[..., 2] * np.float32(0.114)
 
 
+def native_pitch(K: np.ndarray, cfg: NoiseConfig) -> float:
+    """How many image pixels one of the depth sensor's own pixels spans: ``fx / cfg.native_fx`` when that is
+    above 1.01 (a depth image registered to a narrower colour camera, e.g. YCB-Video's Xtion at fx 1067 against
+    the depth camera's ~572), else 1 (the image is at the sensor's pitch, or ``native_fx`` is 0: unknown)."""
+    if cfg.native_fx <= 0:
+        return 1.0
+    s = float(K[0][0]) / float(cfg.native_fx)
+    return s if s > 1.01 else 1.0
+
+
+def _pitch_grid(n_hi: int, s: float) -> tuple[np.ndarray, np.ndarray]:
+    """Sampling along one image axis at ``s`` image pixels per sensor pixel. Returns (down, up): ``down`` (n_lo,)
+    the image pixel nearest each sensor pixel's centre; ``up`` (n_hi,) the sensor pixel each image pixel lies in."""
+    n_lo = max(int(round(n_hi / s)), 1)
+    down = np.clip(np.rint((np.arange(n_lo) + 0.5) * s - 0.5), 0, n_hi - 1).astype(np.intp)
+    up = np.clip(np.floor((np.arange(n_hi) + 0.5) / s), 0, n_lo - 1).astype(np.intp)
+    return down, up
+
+
 def apply_noise(depth: np.ndarray, K: np.ndarray, cfg: NoiseConfig, rng: np.random.Generator,
                 rgb: np.ndarray | None = None) -> np.ndarray:
-    """Turn a clean rendered depth map into a Kinect-like measurement.
+    """Turn a clean rendered depth map into a measurement of the sensor ``cfg`` describes, at the sensor's pitch.
+
+    depth: (H, W) float metres, 0 = no measurement; K: (3, 3) pixels; rgb: (H, W, 3) uint8 or None. Returns
+    (H, W) float32 metres, 0 = missing. When the image is finer than the depth sensor (:func:`native_pitch`
+    s > 1: a depth image registered into a narrower colour camera), the clean depth is sampled at the
+    sensor's own pixel centres (nearest), the noise of :func:`noise_at_pitch` is drawn there with K scaled by
+    1/s, and each image pixel takes the measurement of the sensor pixel it lies in (nearest). Holes, edge
+    bands, shadows and correlated errors then span s times more image pixels, as in registered real depth.
+    With s = 1 this is :func:`noise_at_pitch` itself, draw for draw.
+    """
+    depth = np.asarray(depth)
+    _check_inputs(depth, K)
+    s = native_pitch(K, cfg) if cfg.enabled else 1.0
+    if s == 1.0:
+        return noise_at_pitch(depth, K, cfg, rng, rgb=rgb)
+    h, w = depth.shape
+    rows, up_r = _pitch_grid(h, s)
+    cols, up_c = _pitch_grid(w, s)
+    K = np.asarray(K, np.float64)
+    K_lo = np.array([[K[0, 0] / s, K[0, 1] / s, (K[0, 2] + 0.5) / s - 0.5],
+                     [0.0, K[1, 1] / s, (K[1, 2] + 0.5) / s - 0.5], [0.0, 0.0, 1.0]])
+    rgb_lo = None
+    if rgb is not None:
+        rgb_lo = cv2.resize(np.ascontiguousarray(rgb), (len(cols), len(rows)), interpolation=cv2.INTER_AREA)
+    lo = noise_at_pitch(np.ascontiguousarray(depth[np.ix_(rows, cols)]), K_lo, cfg, rng, rgb=rgb_lo)
+    return np.ascontiguousarray(lo[np.ix_(up_r, up_c)])
+
+
+def noise_at_pitch(depth: np.ndarray, K: np.ndarray, cfg: NoiseConfig, rng: np.random.Generator,
+                   rgb: np.ndarray | None = None) -> np.ndarray:
+    """Turn a clean rendered depth map into a Kinect-like measurement, one draw per image pixel.
 
     depth: (H, W) float metres, 0 (or non-finite) = no measurement; K: (3, 3) pixels (fx = K[0, 0]
     is used for disparity); rng: the frame's generator; rgb: (H, W, 3) uint8 colour of the same view, used
