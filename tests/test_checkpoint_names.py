@@ -1,5 +1,5 @@
 """Files written under the older names still load: model files and stage-2 checkpoints with the keys ``detect``,
-``pose`` and ``extra.pose_config`` (the shipped checkpoints/lm8.pt and ycbv3.pt are such files), two_stage.yaml
+``pose`` and ``extra.pose_config`` (each shipped model re-saved that way), two_stage.yaml
 with a ``pose`` section (and ``--set pose.KEY``), and run folders with ``detect/`` and ``pose/``."""
 
 from __future__ import annotations
@@ -32,17 +32,32 @@ def test_rename_old_keys():
         assert rename_old_keys(unchanged) == unchanged
 
 
+def _as_old_file(payload: dict) -> dict:
+    """A version-3 model payload written the way files were before the names changed (version 2: ``detect``,
+    ``pose``, ``extra.pose_config``)."""
+    old = {k: v for k, v in payload.items() if k not in ("stage1", "stage2", "extra")}
+    extra = dict(payload["extra"])
+    extra["pose_config"] = extra.pop("geometry_config")
+    return {**old, "version": 2, "detect": payload["stage1"], "pose": payload["stage2"], "extra": extra}
+
+
 @pytest.mark.parametrize("name", ["lm8.pt", "ycbv3.pt"])
-def test_shipped_checkpoints_load_under_the_new_names(name):
+def test_shipped_checkpoints_load_under_the_old_names_too(name, tmp_path):
+    """Each shipped model, read as it is and re-saved under the old keys, gives the same model both ways."""
     path = CHECKPOINTS / name
-    raw = torch.load(path, map_location="cpu", weights_only=True)
-    assert raw["version"] == 2 and {"detect", "pose"} <= set(raw) and "pose_config" in raw["extra"]  # the old names
     payload = read_checkpoint(path)
     assert payload["version"] == TWO_STAGE_VERSION and {"stage1", "stage2"} <= set(payload)
-    assert not {"detect", "pose"} & set(payload) and payload["extra"]["geometry_config"] == raw["extra"]["pose_config"]
-    ck = load_checkpoint(path)
-    assert ck.stage2_net is not None and ck.stage2["class_ids"] == ck.class_ids
-    assert ck.geometry_config == raw["extra"]["pose_config"]
+    assert not {"detect", "pose"} & set(payload) and "geometry_config" in payload["extra"]
+    old_path = tmp_path / name
+    torch.save(_as_old_file(payload), old_path)
+    raw = torch.load(old_path, map_location="cpu", weights_only=True)
+    assert raw["version"] == 2 and {"detect", "pose"} <= set(raw) and "pose_config" in raw["extra"]
+    new, old = load_checkpoint(path), load_checkpoint(old_path)
+    assert old.stage2_net is not None and old.stage2["class_ids"] == old.class_ids == new.class_ids
+    assert old.geometry_config == new.geometry_config == payload["extra"]["geometry_config"]
+    for a, b in ((new.model, old.model), (new.stage2_net, old.stage2_net)):
+        sa, sb = a.state_dict(), b.state_dict()
+        assert sa.keys() == sb.keys() and all(torch.equal(sa[k], sb[k]) for k in sa)
 
 
 def test_an_old_stage2_checkpoint_reads_as_stage2(tmp_path):
