@@ -163,7 +163,7 @@ class NoiseConfig:
     textureless_level: float = 0.01  # std of luminance (0..1) below which a patch counts as flat
     scale_sigma: float = 0.0  # per-frame relative error of the depth scale (std)
     offset_sigma: float = 0.0  # per-frame depth offset, metres (std)
-    native_fx: float = 0.0  # pixels: the depth camera's own focal length; a finer image gets the noise at this pitch
+    native_fx: float = 0.0  # pixels: the depth camera's own fx; a finer image gets the noise at this pitch (0: off)
 
 
 @dataclass

@@ -28,9 +28,10 @@ def train_seconds(metrics: Path, upto: int | None = None) -> float:
                    if (upto is None or int(r["step"]) <= upto) and float(r["steps_per_s"]) > 0)
 
 
-def curve_points(run: Path, labels: Path, frames: int | None, stage1_minutes: float) -> list[dict]:
+def curve_points(run: Path, labels: Path, frames: int | None, stage1_minutes: float,
+                 min_visib: float = 0.1) -> list[dict]:
     """One point per stage-2 snapshot of ``run`` (and its final weights): step, minutes, ADD(-S)@10 % without and
-    with ICP (percent) on ``labels``."""
+    with ICP (percent) on ``labels``, instances less visible than ``min_visib`` ignored (``detector eval``'s rule)."""
     from detector.checkpoint import load_checkpoint, save_two_stage
     from detector.data.frames import open_label_file
     from detector.evaluate import evaluate
@@ -58,7 +59,8 @@ def curve_points(run: Path, labels: Path, frames: int | None, stage1_minutes: fl
             ckpt = load_checkpoint(path)
             s = evaluate(network_predictor(ckpt), labels, Path(tmp) / "report", icp=True,
                          cfg=checkpoint_geometry_config(ckpt, None, True), frames=list(range(n)),
-                         poser=checkpoint_poser(ckpt, checkpoint_objects(ckpt)[0]), bop19=False)  # ADD only
+                         poser=checkpoint_poser(ckpt, checkpoint_objects(ckpt)[0]), bop19=False,
+                         min_visib=min_visib)  # ADD only
             minutes = (stage1 + train_seconds(d2 / "metrics.csv", int(part["step"]))) / 60.0
             points.append({"step": int(part["step"]), "minutes": round(minutes, 2),
                            "noicp": round(100 * s["mean"]["noicp"]["0.10"], 1),
@@ -94,6 +96,8 @@ def main() -> None:
     ap.add_argument("labels", type=Path, help="label file to evaluate on (argen label)")
     ap.add_argument("--out", type=Path, required=True, help="the plot (.png); the points go to the same name .json")
     ap.add_argument("--frames", type=int, default=None, help="evaluate only the first N frames")
+    ap.add_argument("--min-visib", type=float, default=0.1,
+                    help="ignore instances less visible than this (detector eval's --min-visib; default 0.1)")
     ap.add_argument("--stage1-minutes", type=float, default=None,
                     help="stage 1's training minutes (default: summed from RUN/stage1/metrics.csv)")
     a = ap.parse_args()
@@ -103,7 +107,7 @@ def main() -> None:
     if a.stage1_minutes is None and not log.is_file():
         raise SystemExit(f"curve.py: {log} is missing; give --stage1-minutes")
     stage1 = a.stage1_minutes if a.stage1_minutes is not None else train_seconds(log) / 60.0
-    points = curve_points(a.run, a.labels, a.frames, stage1)
+    points = curve_points(a.run, a.labels, a.frames, stage1, a.min_visib)
     a.out.parent.mkdir(parents=True, exist_ok=True)
     a.out.with_suffix(".json").write_text(json.dumps(points, indent=1) + "\n")
     plot(points, stage1, a.out, f"two-stage model on {a.labels.name}")

@@ -28,7 +28,8 @@ step capture $A capture-sim --scene examples/ycbv_real/ycbv.yaml --camera "$REAL
 [ -f "$OUT/ycbv_real.h5" ] || $A label "$REAL" --split test --out "$OUT/ycbv_real.h5" --max-depth 1.5 --quiet
 # 3. the two-stage detector: stage 1 without colour (geometry only: it finds more on the real frames, RESULTS.md),
 #    stage 2 with camera-like colour changes (exposure, white balance, gamma, noise)
-SETS=(--set stage1.colour=none --set stage2.crop.colour=camera --set stage2.steps=${S2STEPS:-8000})
+#    (stage 2 keeps its weights every 2000 steps for the training-length row of RESULTS.md's ablation)
+SETS=(--set stage1.colour=none --set stage2.crop.colour=camera --set stage2.steps=${S2STEPS:-8000} --set stage2.keep_every=2000)
 if [ -f "$RUN/two_stage.yaml" ] && [ ! -f "$RUN/model.pt" ]; then
   step train $D train "$OUT/ycbv_train.h5" --out "$RUN" --resume --quiet
 elif [ ! -f "$RUN/model.pt" ]; then
@@ -36,4 +37,6 @@ elif [ ! -f "$RUN/model.pt" ]; then
 fi
 # 4. the real frames, without and with ICP (checkpoints/ycbv3.pt is $RUN/model.pt)
 $D eval "$RUN/model.pt" "$OUT/ycbv_real.h5" --out "$REP" --icp --min-visib 0 --quiet
+# 5. training length: each kept stage-2 snapshot with the run's stage 1, on the real frames
+[ -f "$REP/curve.json" ] || .venv/bin/python examples/linemod/curve.py "$RUN" "$OUT/ycbv_real.h5" --out "$REP/curve.png" --min-visib 0
 cat "$T"
