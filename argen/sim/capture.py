@@ -90,6 +90,7 @@ class FrameMaker:
         self.K = intrinsics(cfg.camera)  # written to the files
         self.K_sim = simulation_K(self.K, cfg.output.pixel_centres)  # the images are made with this one
         self.renderer = get_renderer(cfg.camera.width, cfg.camera.height)
+        self.renderer.reset()  # the process's renderer may hold other meshes: same seed, same bytes, whatever ran before
 
     def background(self, index: int, timing: dict | None = None) -> tuple:
         """The scene of frame ``index`` and its background seen from the true camera.

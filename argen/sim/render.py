@@ -675,6 +675,14 @@ class Renderer:
         uv = p[:, :2] / p[:, 2:3]
         return np.r_[uv.min(axis=0) - 1.0, uv.max(axis=0) + 1.0]
 
+    def reset(self) -> None:
+        """Drop every cached mesh and its nodes, so the next frames render as in a new process (a capture's bytes
+        must not depend on what the process rendered before it)."""
+        for e in self._entries.values():
+            for node in e.nodes:
+                self._scene.remove_node(node)
+        self._entries.clear()
+
     def close(self) -> None:
         """Free the OpenGL context and the cached meshes; the renderer cannot be used afterwards."""
         for k in [k for k, r in _RENDERERS.items() if r is self]:
