@@ -22,6 +22,7 @@ import yaml
 from detector.checkpoint import save_two_stage
 from detector.config import config_to_dict, load_preset, load_yaml
 from detector.errors import DetectorError
+from detector.data.frames import object_table_dict, open_label_file
 from detector.geometry.types import GeometryConfig
 from detector.stage1.train import RESUME_FREE_KEYS, make_config, train
 from detector.stage2.poser import PoserConfig
@@ -94,7 +95,8 @@ def load_two_stage_config(path: str | Path | None = None, overrides: dict | None
 
 
 def train_two_stage(cfg: TwoStageConfig, train_path: str | Path, out_dir: str | Path, resume: bool = False,
-                    progress: bool = True, val_path: str | Path | None = None) -> Path:
+                    progress: bool = True, val_path: str | Path | None = None,
+                    stage1_path: str | Path | None = None) -> Path:
     """Train stage 1 into ``out_dir/stage1`` and stage 2 into ``out_dir/stage2`` (:func:`stage_dirs`), then write
     ``out_dir/model.pt``.
 
@@ -102,13 +104,17 @@ def train_two_stage(cfg: TwoStageConfig, train_path: str | Path, out_dir: str | 
     Resuming checks both stages' settings first: only those that do not change the result (e.g. ``stage2.cache_mb``,
     the devices, more steps) may differ from the run's. val_path: a validation label file for stage 1 (its
     ``metrics.csv`` gets val_loss / val_acc every ``stage1.val_every`` steps, and ``stage1/best.pt`` keeps the
-    weights of the lowest); the model file takes the last weights of each stage. Returns the model file's path.
+    weights of the lowest); the model file takes the last weights of each stage. stage1_path: a label file of the
+    same objects for stage 1 alone (default: train_path for both), e.g. a capture without distractors while stage 2
+    learns among them (RESULTS.md, ablation row F). Returns the model file's path.
     """
     if int(os.environ.get("WORLD_SIZE", "1")) > 1:
         raise DetectorError("the two-stage model trains in one process (on a GPU with --device cuda); torchrun is "
                             "for --preset cpu or paper")
     out_dir = Path(out_dir)
     s1, s2, geometry, infer = cfg.resolved()
+    if stage1_path is not None:  # before hours of stage 1: both files must open and hold the same objects
+        _check_same_objects(Path(stage1_path), Path(train_path), s1.class_ids, s2.class_ids)
     d1, d2 = stage_dirs(out_dir)
     done1, saved1 = _progress(d1 / "last.pt", "stage1")
     done2, saved2 = _progress(d2 / "last.pt", "stage2")
@@ -122,7 +128,7 @@ def train_two_stage(cfg: TwoStageConfig, train_path: str | Path, out_dir: str | 
     if done1 is None or done1 < s1.steps:
         if done1 is not None and not resume:
             raise DetectorError(f"{out_dir} holds an unfinished run; add --resume to continue it")
-        train(s1, train_path, d1, val_path=val_path, resume=done1 is not None, progress=progress)
+        train(s1, stage1_path or train_path, d1, val_path=val_path, resume=done1 is not None, progress=progress)
     done2 = _progress(d2 / "last.pt", "stage2")[0]
     if done2 is None or done2 < s2.steps:
         if done2 is not None and not resume:
@@ -134,6 +140,22 @@ def train_two_stage(cfg: TwoStageConfig, train_path: str | Path, out_dir: str | 
         raise DetectorError(f"the stages learned different objects ({stage1['class_ids']} vs {part['class_ids']})")
     return save_two_stage(out_dir / "model.pt", stage1, {**part, "infer_config": infer},
                           {"geometry_config": geometry, "train_file": str(train_path)})
+
+
+def _check_same_objects(stage1_path: Path, train_path: Path, ids1, ids2) -> None:
+    """Raise a one-line DetectorError unless the two label files open and stage 1 and stage 2 would learn the
+    same object ids from them (ids1 / ids2: the stages' ``class_ids`` settings, None = all of the file's)."""
+    learned = []
+    for path, ids in ((stage1_path, ids1), (train_path, ids2)):
+        lf = open_label_file(path)
+        try:
+            objects = object_table_dict(lf.objects)
+        finally:
+            lf.close()
+        learned.append(sorted(int(i) for i in (objects["ids"] if ids is None else ids)))
+    if learned[0] != learned[1]:
+        raise DetectorError(f"--stage1-data {stage1_path} holds objects {learned[0]}, the training file "
+                            f"{train_path} {learned[1]}: both stages must learn the same objects")
 
 
 def stage_dirs(out_dir: str | Path) -> tuple[Path, Path]:

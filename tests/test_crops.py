@@ -397,6 +397,38 @@ def tiny_two_stage_args(s1_steps: int = 2, s2_steps: int = 3) -> list[str]:
     return args
 
 
+def test_stage1_data_trains_stage1_on_its_own_file(labels, tmp_path):
+    """--stage1-data: stage 1 learns from its own label file (here a capture without any distractors), stage 2
+    from the training file; a file of other objects is refused in one line before anything trains, and the single
+    network's presets refuse the option."""
+    from detector.cli.app import app as det_app
+    from detector.training.checkpoint_file import read_checkpoint
+    from test_data import write_synthetic_h5
+
+    run = CliRunner()
+    r = run.invoke(argen_app, ["capture-sim", "--frames", "4", "--out", str(tmp_path / "plain"), "--seed", "8",
+                               "--set", "clutter.count=[0,0]", "--set", "clutter.on_board=[0,0]", "--quiet"])
+    assert r.exit_code == 0, r.output
+    plain = tmp_path / "plain.h5"
+    run_label(LabelRequest(dataset=tmp_path / "plain", split="train_pbr", out=plain, progress=False,
+                           cfg=LabelConfig(max_points=20000)))
+    out = tmp_path / "run"
+    r = run.invoke(det_app, ["train", str(labels), "--out", str(out), "--stage1-data", str(plain),
+                             *tiny_two_stage_args(2, 2)])
+    assert r.exit_code == 0, r.output
+    assert read_checkpoint(out / "stage1" / "last.pt")["extra"]["train_file"] == str(plain)
+    assert read_checkpoint(out / "model.pt")["extra"]["train_file"] == str(labels)
+    other = write_synthetic_h5(tmp_path / "other.h5", num_frames=2, seed=0)  # objects 1 and 5
+    for args in ([str(labels), "--out", str(tmp_path / "r2"), "--stage1-data", str(other)],
+                 [str(labels), "--out", str(tmp_path / "r3"), "--stage1-data", str(tmp_path / "missing.h5")],
+                 [str(labels), "--out", str(tmp_path / "r4"), "--stage1-data", str(plain), "--preset", "cpu"]):
+        r = run.invoke(det_app, ["train", *args, "--quiet"])
+        assert r.exit_code == 2 and r.stderr.count("\n") == 1, r.output
+        assert not (tmp_path / args[2] / "stage1").exists() and not (tmp_path / args[2] / "last.pt").exists()
+    assert "both stages must learn the same objects" in run.invoke(
+        det_app, ["train", str(labels), "--out", str(tmp_path / "r2"), "--stage1-data", str(other), "--quiet"]).stderr
+
+
 def test_two_stage_train_resume_eval_predict(labels, tmp_path):
     """The default `detector train` trains both stages into one model file that eval and predict take, with the
     model's own threshold; --val validates stage 1, --device, --seed and --workers set both stages, the options of

@@ -46,6 +46,9 @@ def train_cmd(
     overwrite: bool = typer.Option(False, "--overwrite", help="replace an existing run folder"),
     sets: list[str] = typer.Option([], "--set", help="any config key, e.g. --set stage2.steps=3000 "
                                                                   "(two-stage) or --set loss.w_conf=2 (cpu/paper)"),
+    stage1_data: Optional[Path] = typer.Option(None, "--stage1-data", help="two-stage: a label file of the same "
+                                               "objects for stage 1 alone (default: the training file), e.g. a "
+                                               "capture without distractors"),
     quiet: bool = typer.Option(False, "--quiet", help="no progress bar"),
 ):
     """Train a detector on a label file; checkpoints and metrics go to --out.
@@ -65,11 +68,13 @@ def train_cmd(
     else:
         two_stage = config is None  # a --config alone is a TrainConfig of the single network
     if two_stage:
-        _train_two_stage(train_file, out, val, config, sets, resume, overwrite, quiet,
+        _train_two_stage(train_file, out, val, config, sets, resume, overwrite, quiet, stage1_data,
                          {"steps": steps, "epochs": epochs, "batch_size": batch_size, "lr": lr,
                           "seg_pretrain_steps": seg_pretrain_steps},
                          {"device": device, "seed": seed, "num_workers": workers})
         return
+    if stage1_data is not None:
+        raise DetectorError("--stage1-data is for the two-stage model (the default), not --preset cpu or paper")
     if steps is not None and epochs is not None:
         raise DetectorError("give --steps or --epochs, not both")
     if resume and overwrite:
@@ -105,7 +110,8 @@ def train_cmd(
 
 
 def _train_two_stage(train_file: Path, out: Path, val: Optional[Path], config: Optional[Path], sets: list[str],
-                     resume: bool, overwrite: bool, quiet: bool, network_flags: dict, shared_flags: dict) -> None:
+                     resume: bool, overwrite: bool, quiet: bool, stage1_data: Optional[Path], network_flags: dict,
+                     shared_flags: dict) -> None:
     """``detector train`` for the two-stage model (see :mod:`detector.two_stage`). network_flags: options of one
     network (refused: the stages differ); shared_flags: options that both stages take (set on both)."""
     from detector.two_stage import load_two_stage_config, train_two_stage  # lazy: torch (see train_cmd)
@@ -125,5 +131,6 @@ def _train_two_stage(train_file: Path, out: Path, val: Optional[Path], config: O
         config = out / "two_stage.yaml"
     cfg = load_two_stage_config(config, overrides)
     prepare_run_folder(out, resume, overwrite)
-    path = train_two_stage(cfg, train_file, out, resume=resume, progress=not quiet, val_path=val)
+    path = train_two_stage(cfg, train_file, out, resume=resume, progress=not quiet, val_path=val,
+                           stage1_path=stage1_data)
     typer.echo(f"{out}: two-stage model -> {path}")
