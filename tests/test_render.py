@@ -238,6 +238,24 @@ def test_repeated_renders_are_bit_identical(renderer):
         assert np.array_equal(x, y)
 
 
+def test_surfaces_at_equal_depth_go_to_the_item_listed_first(renderer):
+    """Two equal slabs at one pose (a paper on a desk, a board on a table) tie in depth at every pixel: the item
+    listed first is drawn, in colour and seg alike, whatever the renderer cached before (pyrender alone leaves the
+    tie to the order of a set of nodes, i.e. to their memory addresses)."""
+    red, blue = coloured_box((0.3, 0.3, 0.01), (220, 20, 20)), coloured_box((0.3, 0.3, 0.01), (20, 20, 220))
+    for fill in range(4):  # other cached meshes change where nodes sit in pyrender's set
+        for j in range(3 * fill):
+            renderer.render([RenderItem(("fill", fill, j), coloured_box((0.02, 0.02, 0.02)), pose(t=(1, 1, 1)), 1)],
+                            K, T_CAM)
+        for order, want_rgb, want_seg in (((0, 1), 0, 1), ((1, 0), 2, 2)):
+            items = [RenderItem("red", red, np.eye(4), 1), RenderItem("blue", blue, np.eye(4), 2)]
+            out = renderer.render([items[i] for i in order], K, T_CAM, seg=True)
+            hit = out.seg > 0
+            assert hit.sum() > 1000
+            assert (out.seg[hit] == want_seg).all(), (fill, order)
+            assert (out.rgb[hit].argmax(axis=1) == want_rgb).all(), (fill, order)
+
+
 def test_renderer_and_uploaded_meshes_are_reused(renderer):
     assert get_renderer(W, H) is renderer
     assert get_renderer(W + 2, H) is not renderer

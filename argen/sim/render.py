@@ -467,6 +467,8 @@ class Renderer:
         self._cam_node = self._scene.add(self._camera, pose=np.eye(4))
         self._entries: OrderedDict[Hashable, _Entry] = OrderedDict()
         self._lights: dict[str, list[pyrender.Node]] = {"directional": [], "point": []}
+        self._draw_rank: dict[pyrender.Node, int] = {}  # node -> index of its item in the last _place
+        self._osr._renderer._sorted_mesh_nodes = self._draw_order
 
     # -- scene management ----------------------------------------------------------------------------
 
@@ -521,6 +523,7 @@ class Renderer:
             else:
                 e.nodes.append(self._scene.add(e.mesh, pose=T))
             nodes.append(e.nodes[k])
+        self._draw_rank = {n: i for i, n in enumerate(nodes)}
         for e in self._entries.values():
             n = used.get(id(e), 0)
             e.mesh.is_visible = n > 0
@@ -533,6 +536,21 @@ class Renderer:
             for node in self._entries.pop(key).nodes:  # no node left: _update_context frees it
                 self._scene.remove_node(node)
         return nodes
+
+    def _draw_order(self, scene: pyrender.Scene) -> list[pyrender.Node]:
+        """The mesh nodes in the order pyrender draws them: opaque before transparent, far before near (pyrender's
+        order), and the items' order where two nodes are equally far.
+
+        Replaces pyrender's own sort, which leaves such ties in the order of a set of nodes, i.e. of their memory
+        addresses: where two surfaces meet at equal depth (paper on a desk, a board on a table, both at the world
+        origin), the pixel went to whichever node came first, so the image depended on what the process had
+        allocated before.
+        """
+        cam = scene.get_pose(scene.main_camera_node)[:3, 3]
+        last = len(self._draw_rank)
+        return sorted(scene.mesh_nodes, key=lambda n: (bool(n.mesh.is_transparent),
+                                                       -float(np.linalg.norm(scene.get_pose(n)[:3, 3] - cam)),
+                                                       self._draw_rank.get(n, last)))
 
     def _set_lights(self, lights: Sequence[Light], ambient: float) -> None:
         bad = [li.kind for li in lights if li.kind not in self._lights]
@@ -682,6 +700,7 @@ class Renderer:
             for node in e.nodes:
                 self._scene.remove_node(node)
         self._entries.clear()
+        self._draw_rank = {}
 
     def close(self) -> None:
         """Free the OpenGL context and the cached meshes; the renderer cannot be used afterwards."""
@@ -691,6 +710,7 @@ class Renderer:
             self._osr.delete()
             self._osr = None
         self._entries.clear()
+        self._draw_rank = {}
 
 
 _RENDERERS: dict[tuple, Renderer] = {}
