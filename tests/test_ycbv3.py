@@ -1,12 +1,16 @@
-"""The shipped model checkpoints/ycbv3.pt, trained only on argen captures of the three ycbv_real meshes: on two
-real frames of the development set (Asus Xtion, YCB-Video) it finds the objects within 10 % ADD(-S)."""
+"""The shipped model checkpoints/ycbv3.pt, trained only on argen captures of the three ycbv_real meshes: on the real
+frames of the development set (Asus Xtion, YCB-Video) it finds objects within 10 % ADD(-S), and its stage 1 labels
+the real mug."""
 
 from __future__ import annotations
 
 from pathlib import Path
 
 import numpy as np
+import pytest
+from scipy.spatial import cKDTree
 
+from argen.h5 import LabelFile
 from argen.label import LabelConfig, LabelRequest, run_label
 from detector.checkpoint import load_checkpoint
 from detector.evaluate import evaluate
@@ -23,16 +27,40 @@ def test_shipped_model_is_small_and_complete():
     assert ck.stage2_net is not None and sorted(ck.class_ids) == [8, 14, 21]
 
 
-def test_shipped_model_finds_the_objects_in_two_real_frames(ycbv_real, tmp_path):
-    run_label(LabelRequest(dataset=ycbv_real, split="test", out=tmp_path / "l.h5", progress=False,
-                           cfg=LabelConfig(max_depth=1.5)))
+@pytest.fixture(scope="module")
+def real_labels(ycbv_real, tmp_path_factory) -> Path:
+    out = tmp_path_factory.mktemp("ycbv3") / "l.h5"
+    run_label(LabelRequest(dataset=ycbv_real, split="test", out=out, progress=False, cfg=LabelConfig(max_depth=1.5)))
+    return out
+
+
+def test_shipped_model_finds_the_objects_in_the_real_frames(real_labels, tmp_path):
     ck = load_checkpoint(CKPT)
     objects = checkpoint_objects(ck)[0]
     cfg = checkpoint_geometry_config(ck, None, True)
-    s = evaluate(network_predictor(ck), tmp_path / "l.h5", tmp_path / "rep", icp=True, cfg=cfg, frames=[3, 4],
-                 min_visib=0.0, poser=checkpoint_poser(ck, objects))
-    errs = np.array([r["icp"] / r["diameter"] for r in s["instances"]])
-    assert len(errs) == 6
-    # the shipped model gets the gelatin box right in both frames and the foam brick in the second (the mug not:
-    # RESULTS.md); a model that finds nothing, or finds the objects but not their orientation, gets none
-    assert np.sum(errs < 0.1) >= 2, np.round(errs, 3)
+    s = evaluate(network_predictor(ck), real_labels, tmp_path / "rep", icp=True, cfg=cfg, min_visib=0.0,
+                 poser=checkpoint_poser(ck, objects))
+    errs = np.array([np.inf if r["icp"] is None else r["icp"] / r["diameter"] for r in s["instances"]])
+    assert len(errs) == 30
+    # the shipped model gets the foam brick right in half the frames (the gelatin box turned the wrong way and the
+    # mug not at all: RESULTS.md); a model that finds nothing, or finds the objects but not their orientation,
+    # gets none
+    assert np.sum(errs < 0.1) >= 4, np.round(errs, 3)
+
+
+def test_shipped_stage1_labels_the_real_mug(real_labels):
+    """Stage 1, trained without distractors (examples/ycbv_real/run.sh), labels most of the real mug's sampled
+    points mug; trained among cup-sized distractors it labelled 4 % of them so (RESULTS.md, runs D and F)."""
+    ck = load_checkpoint(CKPT)
+    pred = network_predictor(ck)
+    mug = right = 0
+    with LabelFile(real_labels) as lf:
+        for i in (0, 5):
+            f = lf.frame(i)
+            p = pred(f)
+            rows = cKDTree(np.asarray(f.features[:, :3], np.float64)).query(p.xyz)[1]
+            on_mug = np.asarray(f.semantic)[rows] == 14
+            mug += int(on_mug.sum())
+            right += int(np.sum(on_mug & (np.asarray(p.obj_ids) == 14)))
+    assert mug > 50
+    assert right / mug > 0.5, (right, mug)
