@@ -446,6 +446,23 @@ def _boxes_overlap(a: np.ndarray, b: np.ndarray) -> bool:
     return bool(a[0] <= b[2] and b[0] <= a[2] and a[1] <= b[3] and b[1] <= a[3])
 
 
+class _LightNode(pyrender.Node):
+    """A light's node whose hash is its place in the renderer's light pool (small distinct integers).
+
+    pyrender binds the lights to the shader in the order of a set of nodes; with the default, address-based hash
+    that order, and with it the order in which the shader sums the lights' contributions, changed with what the
+    process had allocated before, and colour images differed in the last bit. Small integer hashes iterate in the
+    same order in any set.
+    """
+
+    def __init__(self, rank: int, **kwargs):
+        super().__init__(**kwargs)
+        self._rank = int(rank)
+
+    def __hash__(self) -> int:
+        return self._rank
+
+
 class Renderer:
     """An OSMesa off-screen renderer of ``width`` x ``height`` pixels with a persistent scene.
 
@@ -564,7 +581,9 @@ class Renderer:
             for i, li in enumerate(wanted):
                 if i == len(pool):
                     light = pyrender.DirectionalLight() if kind == "directional" else pyrender.PointLight()
-                    pool.append(self._scene.add(light, pose=np.eye(4)))
+                    node = _LightNode(rank=(100 if kind == "directional" else 1) + i, light=light, matrix=np.eye(4))
+                    self._scene.add_node(node)
+                    pool.append(node)
                 pool[i].light.color = np.asarray(li.colour, dtype=np.float64)
                 pool[i].light.intensity = float(li.intensity)
                 self._scene.set_pose(pool[i], np.array(li.T_world_light, dtype=np.float64))
