@@ -22,7 +22,7 @@ import yaml
 from detector.checkpoint import save_two_stage
 from detector.config import config_to_dict, load_preset, load_yaml
 from detector.errors import DetectorError
-from detector.data.frames import object_table_dict, open_label_file
+from detector.data.frames import FrameSource
 from detector.geometry.types import GeometryConfig
 from detector.stage1.train import RESUME_FREE_KEYS, make_config, train
 from detector.stage2.poser import PoserConfig
@@ -145,14 +145,7 @@ def train_two_stage(cfg: TwoStageConfig, train_path: str | Path, out_dir: str | 
 def _check_same_objects(stage1_path: Path, train_path: Path, ids1, ids2) -> None:
     """Raise a one-line DetectorError unless the two label files open and stage 1 and stage 2 would learn the
     same object ids from them (ids1 / ids2: the stages' ``class_ids`` settings, None = all of the file's)."""
-    learned = []
-    for path, ids in ((stage1_path, ids1), (train_path, ids2)):
-        lf = open_label_file(path)
-        try:
-            objects = object_table_dict(lf.objects)
-        finally:
-            lf.close()
-        learned.append(sorted(int(i) for i in (objects["ids"] if ids is None else ids)))
+    learned = [FrameSource(path, class_ids=ids).class_ids for path, ids in ((stage1_path, ids1), (train_path, ids2))]
     if learned[0] != learned[1]:
         raise DetectorError(f"--stage1-data {stage1_path} holds objects {learned[0]}, the training file "
                             f"{train_path} {learned[1]}: both stages must learn the same objects")

@@ -419,14 +419,13 @@ def test_stage1_data_trains_stage1_on_its_own_file(labels, tmp_path):
     assert read_checkpoint(out / "stage1" / "last.pt")["extra"]["train_file"] == str(plain)
     assert read_checkpoint(out / "model.pt")["extra"]["train_file"] == str(labels)
     other = write_synthetic_h5(tmp_path / "other.h5", num_frames=2, seed=0)  # objects 1 and 5
-    for args in ([str(labels), "--out", str(tmp_path / "r2"), "--stage1-data", str(other)],
-                 [str(labels), "--out", str(tmp_path / "r3"), "--stage1-data", str(tmp_path / "missing.h5")],
-                 [str(labels), "--out", str(tmp_path / "r4"), "--stage1-data", str(plain), "--preset", "cpu"]):
-        r = run.invoke(det_app, ["train", *args, "--quiet"])
-        assert r.exit_code == 2 and r.stderr.count("\n") == 1, r.output
-        assert not (tmp_path / args[2] / "stage1").exists() and not (tmp_path / args[2] / "last.pt").exists()
-    assert "both stages must learn the same objects" in run.invoke(
-        det_app, ["train", str(labels), "--out", str(tmp_path / "r2"), "--stage1-data", str(other), "--quiet"]).stderr
+    for name, args, why in (
+            ("r2", ["--stage1-data", str(other)], "both stages must learn the same objects"),
+            ("r3", ["--stage1-data", str(tmp_path / "missing.h5")], "missing.h5"),
+            ("r4", ["--stage1-data", str(plain), "--preset", "cpu"], "--stage1-data is for the two-stage model")):
+        r = run.invoke(det_app, ["train", str(labels), "--out", str(tmp_path / name), *args, "--quiet"])
+        assert r.exit_code == 2 and r.stderr.count("\n") == 1 and why in r.stderr, r.output
+        assert not (tmp_path / name / "stage1").exists() and not (tmp_path / name / "last.pt").exists()
 
 
 def test_two_stage_train_resume_eval_predict(labels, tmp_path):

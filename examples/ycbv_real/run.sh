@@ -22,14 +22,13 @@ T="$RUN.times.txt"
 step() { local name=$1; shift; local t0; t0=$(date +%s); "$@"; echo "$name $(( $(date +%s) - t0 )) s" >> "$T"; }
 
 # 1. simulated AR capture with the sensor's intrinsics and image size (its BOP camera.json)
-step capture $A capture-sim --scene examples/ycbv_real/ycbv.yaml --camera "$REAL/camera.json" --models "$M" \
-  --frames ${FRAMES:-1500} --seed 1 --workers 2 --out "$OUT/ycbv_train" --quiet
+CAPTURE=(capture-sim --scene examples/ycbv_real/ycbv.yaml --camera "$REAL/camera.json" --models "$M"
+         --frames ${FRAMES:-1500} --seed 1 --workers 2 --quiet)
+step capture $A "${CAPTURE[@]}" --out "$OUT/ycbv_train"
 #    and the same capture without distractors on or around the board, for stage 1 alone: among distractors a
 #    geometry-only stage 1 learns that a cup-sized cylinder is background and misses the real mug (RESULTS.md,
 #    ablation row F)
-step capture_stage1 $A capture-sim --scene examples/ycbv_real/ycbv.yaml --camera "$REAL/camera.json" --models "$M" \
-  --frames ${FRAMES:-1500} --seed 1 --workers 2 --out "$OUT/ycbv_stage1" --quiet \
-  --set clutter.count=[0,0] --set clutter.on_board=[0,0]
+step capture_stage1 $A "${CAPTURE[@]}" --out "$OUT/ycbv_stage1" --set clutter.count=[0,0] --set clutter.on_board=[0,0]
 # 2. per-point labels; the working volume is the template's (up to 1.5 m)
 [ -f "$OUT/ycbv_train.h5" ] || step label $A label "$OUT/ycbv_train" --out "$OUT/ycbv_train.h5" --max-depth 1.5 --quiet
 [ -f "$OUT/ycbv_stage1.h5" ] || step label_stage1 $A label "$OUT/ycbv_stage1" --out "$OUT/ycbv_stage1.h5" \
