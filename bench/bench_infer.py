@@ -1,10 +1,14 @@
-"""Inference time per frame, per stage (sampling, network, voting, Kabsch, stage 2, ICP), on CPU or GPU.
+"""Inference time per frame, per stage (sampling, network, voting, Kabsch, stage 2, ICP, depth check), on CPU or GPU.
 
 A two-stage checkpoint (``--checkpoint checkpoints/lm8.pt``) is timed end to end on its own predictions: the
 median per stage and the median of whole frames (ICP included) over ``--frames`` frames after a warm-up.
 
 Usage: .venv/bin/python bench/bench_infer.py [--data FILE.h5] [--checkpoint CKPT] [--preset cpu paper]
                                              [--frames 5] [--device cpu|cuda] [--threads N]
+                                             [--set geometry.KEY=VALUE ...]
+
+``--set`` changes the checkpoint's geometry settings as ``detector eval --set`` does (e.g. the inference without
+the depth check and the other classes: ``--set geometry.depth_check=false --set geometry.other_classes=2``).
 
 Sampling + network: a checkpoint (or a randomly initialised network of each ``--preset``, same cost) on the
 label file's frames (median over frames after one warm-up). A random network's output is noise, so the
@@ -75,14 +79,15 @@ def pose_times(frames: list, objects, num_points: int) -> dict[str, float]:
     return out
 
 
-def two_stage_times(ck, frames: list, device: str) -> dict[str, float]:
+def two_stage_times(ck, frames: list, device: str, sets: list[str] | None = None) -> dict[str, float]:
     """A two-stage checkpoint end to end on real predictions: median seconds per stage and of the whole frame
-    (sampling, network, voting, stage 2, ICP with the model's own geometry settings), and detections per frame."""
+    (sampling, network, voting, stage 2, ICP, depth check with the model's own geometry settings, ``sets`` over
+    them), and detections per frame."""
     from detector.infer import checkpoint_geometry_config, checkpoint_objects, checkpoint_poser, estimate
     from detector.stage1.predictor import network_predictor
 
     objects = checkpoint_objects(ck)[0]
-    cfg = checkpoint_geometry_config(ck, None, True)
+    cfg = checkpoint_geometry_config(ck, None, True, sets=sets)
     pred, poser = network_predictor(ck, seed=0, device=device), checkpoint_poser(ck, objects, device)
     runs, dets = [], []
     for k, f in enumerate([frames[0], *frames]):  # the first is a warm-up
@@ -95,7 +100,7 @@ def two_stage_times(ck, frames: list, device: str) -> dict[str, float]:
             runs.append(t)
             dets.append(len(r))
     out = {s: statistics.median(r.get(s, 0.0) for r in runs)
-           for s in ("sampling", "network", "voting", "kabsch", "stage2", "icp", "total")}
+           for s in ("sampling", "network", "voting", "kabsch", "stage2", "icp", "depth_check", "total")}
     out["detections"] = statistics.mean(dets)
     return out
 
@@ -125,6 +130,8 @@ def main() -> None:
     ap.add_argument("--frames", type=int, default=5)
     ap.add_argument("--device", default="cpu")
     ap.add_argument("--threads", type=int, default=0, help="torch CPU threads (0: torch's default)")
+    ap.add_argument("--set", dest="sets", action="append", default=[],
+                    help="a geometry setting of the checkpoint, geometry.KEY=VALUE (two-stage checkpoints)")
     args = ap.parse_args()
 
     import torch
@@ -147,7 +154,7 @@ def main() -> None:
             [(p, random_checkpoint(p, objects_dict, args.device)) for p in args.preset]
         for name, ck in ckpts:
             if ck.stage2_net is not None:  # a two-stage model: its whole pipeline on its own predictions
-                t = two_stage_times(ck, frames, args.device)
+                t = two_stage_times(ck, frames, args.device, args.sets)
                 ms = {k: round(1000 * v, 1) for k, v in t.items() if k != "detections"}
                 res = {"model": f"{name} (two-stage)", "device": args.device, "threads": torch.get_num_threads(),
                        "frame_points": int(statistics.mean(len(f.features) for f in frames)),

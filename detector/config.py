@@ -61,6 +61,13 @@ def parse_set_options(pairs: list[str] | None) -> dict[str, Any]:
         return settings.parse_sets(pairs)
 
 
+def apply_set_options(cfg: Any, dotted: dict[str, Any], where: str = "--set") -> Any:
+    """A copy of the settings dataclass ``cfg`` with ``{"key": value}`` overrides applied and checked
+    (:func:`argen.settings.apply_sets`: an unknown key or a value of the wrong type is a DetectorError)."""
+    with argen_errors():
+        return settings.apply_sets(cfg, dotted, where)
+
+
 def load_yaml(path: str | Path, what: str = "config file") -> dict:
     """The mapping in a YAML file; a missing file or bad YAML is a DetectorError."""
     with argen_errors():

@@ -10,14 +10,17 @@ this module.
 
 from __future__ import annotations
 
+import time
 from dataclasses import replace
 
 import numpy as np
 
+from detector.config import apply_set_options, parse_set_options
 from detector.errors import DetectorError
 from detector.geometry.icp import refine
 from detector.geometry.types import Detection, GeometryConfig, ObjectInfo
-from detector.geometry.voting import detect, nms
+from detector.geometry.verify import depth_checked, range_image
+from detector.geometry.voting import detect, nms, other_classes
 from detector.stage1.predictor import Predictions
 from detector.stage2.crops import CropConfig
 from detector.stage2.poser import CropPoser, PoserConfig, RETIRED_INFER_KEYS
@@ -30,16 +33,39 @@ def estimate(preds: Predictions, objects: ObjectInfo, cfg: GeometryConfig, timin
 
     cloud: (M,3) metres, the frame's full point cloud, for ICP (see :func:`detector.geometry.icp.refine`); None: the
     predicted points only. poser: a two-stage model's stage 2 (:class:`detector.stage2.poser.CropPoser`), called with
-    the stage-1 detections and ``features`` (M,9), the frame's points whose xyz is ``cloud``; its detections are
-    suppressed again (two crops may settle on one object). ``cfg.min_score`` then drops the weak refined
-    detections (by their score after ICP, recomputed there for a two-stage detection) and
-    ``cfg.min_score_unrefined`` the weak unrefined ones.
+    the stage-1 detections, each also as the other objects its points make likely enough (``cfg.other_classes``:
+    :func:`detector.geometry.voting.other_classes`), and ``features`` (M,9), the frame's points whose xyz is
+    ``cloud``; its detections are suppressed again (two crops may settle on one object). With ``cfg.depth_check``
+    and a cloud, a score falls where the frame's depth contradicts the pose
+    (:func:`detector.geometry.verify.depth_checked`; a two-stage detection's again after ICP, which rescored it, a
+    single network's once). ``cfg.min_score`` then drops the weak refined detections (by their score after ICP,
+    recomputed there for a two-stage detection) and ``cfg.min_score_unrefined`` the weak unrefined ones; an
+    other-class copy below that threshold is dropped before ICP (ICP lifts right poses of the stage-1 class from
+    below it, measured; the copies are many and mostly wrong). Adds "depth_check" seconds.
     """
     dets = detect(preds.xyz, preds.obj_ids, preds.confidence, preds.control_points, objects, cfg, timings)
     if poser is not None:
-        dets = nms(poser(dets, features, timings), objects.diameters, cfg.nms_fraction)
-    refined = refine(dets, preds.xyz, objects, cfg, timings, cloud) if cfg.icp else None
+        if cfg.other_classes <= 1:
+            dets = other_classes(dets, preds.class_probs, preds.class_ids, objects, cfg.other_classes, cfg.nms_fraction)
+        dets = poser(dets, features, timings)
+    t0 = time.perf_counter()
+    frame = range_image(cloud) if cfg.depth_check and cloud is not None else None
+    if frame is not None:
+        dets = depth_checked(dets, frame, objects, cfg)
+    t_check = time.perf_counter() - t0
+    if poser is not None:
+        dets = nms(dets, objects.diameters, cfg.nms_fraction)
     lo = cfg.min_score if cfg.min_score_unrefined is None else cfg.min_score_unrefined
+    dets = [d for d in dets if d.score >= lo or not d.other_class]  # a weak other-class copy is not worth an ICP
+    refined = refine(dets, preds.xyz, objects, cfg, timings, cloud) if cfg.icp else None
+    if refined is not None and frame is not None:  # ICP rescored the two-stage detections: check them again
+        t0 = time.perf_counter()
+        again = [k for k, d in enumerate(refined) if d.points is not None]
+        for k, d in zip(again, depth_checked([refined[k] for k in again], frame, objects, cfg)):
+            refined[k] = d
+        t_check += time.perf_counter() - t0
+    if frame is not None and timings is not None:
+        timings["depth_check"] = timings.get("depth_check", 0.0) + t_check
     return ([d for d in dets if d.score >= lo],
             [d for d in refined if d.score >= cfg.min_score] if refined is not None else None)
 
@@ -76,14 +102,22 @@ def geometry_config(tau: float, icp: bool, base: GeometryConfig | None = None) -
     return replace(base or GeometryConfig(), tau=tau, icp=icp)
 
 
-def checkpoint_geometry_config(ckpt, tau: float | None, icp: bool, min_score: float | None = None) -> GeometryConfig:
+def checkpoint_geometry_config(ckpt, tau: float | None, icp: bool, min_score: float | None = None,
+                               sets: list[str] | None = None) -> GeometryConfig:
     """The geometry settings of a checkpoint (those stored with a two-stage model, e.g. its thresholds), with the CLI's
     options over them; ``tau`` / ``min_score`` None keep the model's (the paper's tau 0.8 and no score threshold
-    for a model that stores none)."""
+    for a model that stores none); ``sets``: ``["geometry.KEY=VALUE", ...]`` (``--set``), any other
+    :class:`GeometryConfig` setting, checked."""
     try:
         base = replace(GeometryConfig(), **ckpt.geometry_config)
     except TypeError as exc:
         raise DetectorError(f"the checkpoint's geometry settings are not understood ({exc})") from None
+    dotted = parse_set_options(sets)
+    for key in dotted:
+        if not key.startswith("geometry."):
+            raise DetectorError(f"--set {key}: eval and predict take geometry settings only (--set geometry.KEY=VALUE)")
+    if dotted:
+        base = apply_set_options(base, {k.split(".", 1)[1]: v for k, v in dotted.items()}, "--set geometry")
     if min_score is not None:
         if not 0 <= min_score <= 1:
             raise DetectorError(f"--min-score must be in [0, 1], got {min_score}")

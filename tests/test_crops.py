@@ -502,6 +502,17 @@ def test_two_stage_train_resume_eval_predict(labels, tmp_path):
     assert r.exit_code == 0, r.output
     s = json.loads((rep / "report.json").read_text())
     assert s["config"]["centre_votes"] and s["config"]["tau"] == tau and "stage2" in s["timing_ms"]
+    assert s["config"]["depth_check"] and "depth_check" in s["timing_ms"]
+    # --set changes the model's geometry settings for this run; a wrong key or value is a one-line error
+    r = run.invoke(det_app, ["eval", str(out / "model.pt"), str(labels), "--out", str(rep), "--icp", "--quiet",
+                             "--frames", "2", "--set", "geometry.depth_check=false", "--set", "geometry.tau=0.3"])
+    assert r.exit_code == 0, r.output
+    s = json.loads((rep / "report.json").read_text())
+    assert not s["config"]["depth_check"] and s["config"]["tau"] == 0.3 and "depth_check" not in s["timing_ms"]
+    for bad, word in (("geometry.depth_chek=false", "depth_check"), ("depth_check=false", "geometry.KEY"),
+                      ("geometry.other_classes=abc", "number")):
+        r = run.invoke(det_app, ["eval", str(out / "model.pt"), str(labels), "--out", str(rep), "--set", bad])
+        assert r.exit_code == 2 and word in r.stderr and len(r.stderr.strip().splitlines()) == 1, r.stderr
     ds = labels.parent / "ds" / "train_pbr" / "000000" / "000001"
     r = run.invoke(det_app, ["predict", str(out / "model.pt"), str(ds), "--out", str(tmp_path / "pred"), "--icp"])
     assert r.exit_code == 0, r.output

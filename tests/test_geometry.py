@@ -18,7 +18,7 @@ from detector.geometry.icp import (
 )
 from detector.geometry.kabsch import kabsch
 from detector.geometry.types import Detection, GeometryConfig, ObjectInfo
-from detector.geometry.voting import detect, nms, robust_control_points, vote_clusters
+from detector.geometry.voting import detect, nms, other_classes, robust_control_points, vote_clusters
 
 BOX = np.array([[x, y, z] for x in (-0.04, 0.04) for y in (-0.03, 0.03) for z in (-0.02, 0.02)] + [[0, 0, 0]])
 DIAM = float(np.linalg.norm([0.08, 0.06, 0.04]))
@@ -425,3 +425,22 @@ def test_icp_on_a_spread_subset_of_many_points_still_fixes_the_pose():
     assert ok and np.allclose(R1, r.R, atol=1e-9) and np.allclose(t1, r.t, atol=1e-12)
     (full,) = refine([d], noisy[:3], objs, GeometryConfig(icp=True), cloud=noisy)
     assert add_error(model, R, t, full.R, full.t) < 0.003
+
+
+def test_other_classes_adds_each_likely_object_at_the_same_centre():
+    box2 = BOX * 1.5
+    objs = ObjectInfo({7: BOX, 8: box2, 9: BOX}, {7: DIAM, 8: 1.5 * DIAM, 9: DIAM}, {7: BOX, 8: box2, 9: BOX})
+    t = np.array([0.1, 0.0, 0.8])
+    d = Detection(7, 0.9, np.eye(3), t, 4, BOX + t, np.arange(4))
+    probs = np.array([[0.1, 0.6, 0.3, 0.0]] * 2 + [[0.0, 0.8, 0.1, 0.1]] * 2)  # mean: bg .05, 7 .7, 8 .2, 9 .05
+    out = other_classes([d], probs, [7, 8, 9], objs, 0.1, 0.5)
+    assert [k.obj_id for k in out] == [7, 8]
+    assert np.allclose(out[1].control_points[8], d.control_points[8])  # the same box centre
+    assert np.allclose(out[1].control_points, box2 + out[1].t) and out[1].score == pytest.approx(0.9 * 0.2)
+    assert [k.obj_id for k in other_classes([d], probs, [7, 8, 9], objs, 0.05, 0.5)] == [7, 8, 9]
+    assert [k.obj_id for k in other_classes([d], probs, [7, 8, 9], objs, 1.5, 0.5)] == [7]
+    # an object already detected there is not added again; one detected elsewhere is
+    near = Detection(8, 0.5, np.eye(3), out[1].t + 0.01, 4, box2 + out[1].t, np.arange(4))
+    far = replace(near, t=out[1].t + 0.3)
+    assert [k.obj_id for k in other_classes([d, near], probs, [7, 8, 9], objs, 0.1, 0.5)] == [7, 8]
+    assert [k.obj_id for k in other_classes([d, far], probs, [7, 8, 9], objs, 0.1, 0.5)] == [7, 8, 8]

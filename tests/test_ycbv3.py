@@ -42,10 +42,10 @@ def test_shipped_model_finds_the_objects_in_the_real_frames(real_labels, tmp_pat
                  poser=checkpoint_poser(ck, objects))
     errs = np.array([np.inf if r["icp"] is None else r["icp"] / r["diameter"] for r in s["instances"]])
     assert len(errs) == 30
-    # the shipped model gets the foam brick right in half the frames (the gelatin box turned the wrong way and the
-    # mug not at all: RESULTS.md); a model that finds nothing, or finds the objects but not their orientation,
-    # gets none
-    assert np.sum(errs < 0.1) >= 4, np.round(errs, 3)
+    # the shipped model gets the foam brick right in 8 of 10 frames and the gelatin box in one (the box turned the
+    # wrong way, the mug's handle hidden: RESULTS.md; 5 of 30 without the depth check and the other classes); a
+    # model that finds nothing, or finds the objects but not their orientation, gets none
+    assert np.sum(errs < 0.1) >= 7, np.round(errs, 3)
 
 
 def test_shipped_stage1_labels_the_real_mug(real_labels):

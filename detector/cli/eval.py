@@ -39,6 +39,9 @@ def register(app: typer.Typer) -> None:
                                                         "BOP19 AR (default: the one the label file names)."),
         device: str = typer.Option("cpu", "--device", help="torch device, e.g. cpu or cuda."),
         seed: int = typer.Option(0, "--seed", help="Point sampling seed."),
+        sets: list[str] = typer.Option([], "--set", help="A geometry setting of the model file, e.g. --set "
+                                                         "geometry.depth_check=false (keys of "
+                                                         "detector.geometry.types.GeometryConfig)."),
         quiet: bool = typer.Option(False, "--quiet", help="No progress bar."),
     ) -> None:
         """Evaluate a checkpoint on a label file: ADD/ADD-S accuracy, F1, BOP19 AR, timings, BOP results CSV."""
@@ -54,7 +57,7 @@ def register(app: typer.Typer) -> None:
         if not 0 <= min_visib <= 1:
             raise DetectorError(f"--min-visib is a visible fraction in [0, 1], got {min_visib}")
         ckpt = load_checkpoint(checkpoint, device)
-        cfg = checkpoint_geometry_config(ckpt, tau, icp, min_score)
+        cfg = checkpoint_geometry_config(ckpt, tau, icp, min_score, sets)
         with open_label_file(data) as lf:
             n = lf.num_frames
             if n == 0:
@@ -90,6 +93,9 @@ def register(app: typer.Typer) -> None:
                                                   help="Drop detections scoring less (default: the model's own)."),
         device: str = typer.Option("cpu", "--device", help="torch device."),
         seed: int = typer.Option(0, "--seed", help="Point sampling seed."),
+        sets: list[str] = typer.Option([], "--set", help="A geometry setting of the model file, e.g. --set "
+                                                         "geometry.depth_check=false (keys of "
+                                                         "detector.geometry.types.GeometryConfig)."),
     ) -> None:
         """Predict the poses in one frame: poses.json (metres) and poses.png (3D boxes)."""
         # lazy: torch and open3d load in seconds; `detector --help` and the other commands do not need them
@@ -99,7 +105,7 @@ def register(app: typer.Typer) -> None:
         from detector.stage1.predictor import network_predictor
 
         ckpt = load_checkpoint(checkpoint, device)
-        cfg = checkpoint_geometry_config(ckpt, tau, icp, min_score)
+        cfg = checkpoint_geometry_config(ckpt, tau, icp, min_score, sets)
         inp = load_input(input, K=K, depth_scale=depth_scale, camera=camera, rgb=rgb, seed=seed)
         objects, names = checkpoint_objects(ckpt)
         res = predict(network_predictor(ckpt, seed), inp, objects, out, cfg, names,

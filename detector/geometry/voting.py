@@ -14,6 +14,8 @@ Numpy and scipy; metres; poses map model points into the camera frame (``x_cam =
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import time
 
 import numpy as np
@@ -127,6 +129,31 @@ def nms(detections: list[Detection], diameters: dict[int, float], fraction: floa
         if all(k.obj_id != d.obj_id or np.linalg.norm(k.t - d.t) >= fraction * diameters[d.obj_id] for k in kept):
             kept.append(d)
     return kept
+
+
+def other_classes(detections: list[Detection], class_probs: np.ndarray, class_ids: list[int], objects: ObjectInfo,
+                  min_prob: float, fraction: float) -> list[Detection]:
+    """The detections and, for each, a copy as every other object whose class the detection's points give a mean
+    probability of at least ``min_prob``, centred on the same box centre (orientation left to stage 2), unless a
+    detection of that object already lies within ``fraction`` of its diameter. On real frames the first stage's
+    classes are often wrong where its centres are right (a brick taken for a box); stage 2 then poses each class and
+    the scores tell them apart. class_probs: (K,C+1) per predicted point, column 0 background, column c object
+    ``class_ids[c-1]``; a detection's ``members`` index its rows. A copy's score is the detection's times that
+    probability; it is marked ``other_class``. ``min_prob`` > 1: none."""
+    out = list(detections)
+    for d in detections:
+        mean = np.asarray(class_probs, np.float64)[d.members].mean(axis=0)
+        centre = d.control_points[8]
+        for c, oid in enumerate(class_ids):
+            oid = int(oid)
+            if oid == d.obj_id or oid not in objects.diameters or mean[c + 1] < min_prob:
+                continue
+            t = centre - objects.control_points[oid][8]
+            if any(k.obj_id == oid and np.linalg.norm(k.t - t) < fraction * objects.diameters[oid] for k in out):
+                continue
+            out.append(replace(d, obj_id=oid, t=t, R=np.eye(3), control_points=objects.control_points[oid] + t,
+                               score=float(d.score * mean[c + 1]), other_class=True))
+    return out
 
 
 def detect(xyz: np.ndarray, obj_ids: np.ndarray, confidence: np.ndarray, control_points: np.ndarray,

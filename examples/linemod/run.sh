@@ -41,6 +41,10 @@ fi
 # 4. evaluation with the model's own thresholds: linemod test set with and without ICP, lchf test set (F1)
 $D eval runs/lm8/model.pt "$OUT/lm_test.h5"   --out reports/lm8_test  --icp --quiet
 $D eval runs/lm8/model.pt "$OUT/lchf_test.h5" --out reports/lm8_lchf  --icp --quiet
+#    and without the depth check and the other classes (the inference made for real frames; RESULTS.md)
+OFF=(--set geometry.depth_check=false --set geometry.other_classes=2)
+$D eval runs/lm8/model.pt "$OUT/lm_test.h5"   --out reports/lm8_test_nochecks --icp --quiet "${OFF[@]}"
+$D eval runs/lm8/model.pt "$OUT/lchf_test.h5" --out reports/lm8_lchf_nochecks --icp --quiet "${OFF[@]}"
 # the time-to-accuracy curve: each kept stage-2 snapshot with stage 1, on the test set (docs/img)
 .venv/bin/python examples/linemod/curve.py runs/lm8 "$OUT/lm_test.h5" --out docs/img/time_to_accuracy.png
 

@@ -48,4 +48,15 @@ fi
 $D eval "$RUN/model.pt" "$OUT/ycbv_real.h5" --out "$REP" --icp --min-visib 0 --quiet
 # 5. training length: each kept stage-2 snapshot with the run's stage 1, on the real frames
 [ -f "$REP/curve.json" ] || .venv/bin/python examples/linemod/curve.py "$RUN" "$OUT/ycbv_real.h5" --out "$REP/curve.png" --min-visib 0
+# 6. what inference bought (RESULTS.md): the same model without the depth check and the other classes, each alone,
+#    and other thresholds of the other classes
+G=geometry
+for a in "neither:$G.depth_check=false $G.other_classes=2" "depth_check_only:$G.other_classes=2" \
+         "other_classes_only:$G.depth_check=false" "other_classes_0.05:$G.other_classes=0.05" \
+         "other_classes_0.2:$G.other_classes=0.2"; do
+  name=${a%%:*}; sets=()
+  for kv in ${a#*:}; do sets+=(--set "$kv"); done
+  [ -f "$REP/inference_$name/report.json" ] || \
+    $D eval "$RUN/model.pt" "$OUT/ycbv_real.h5" --out "$REP/inference_$name" --icp --min-visib 0 --quiet "${sets[@]}"
+done
 cat "$T"

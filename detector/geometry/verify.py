@@ -1,0 +1,108 @@
+"""Pose verification against the frame's depth: does the sensor agree with a detection's pose? A detection's support
+(the share of its own points on the model surface) cannot see a model that is too big for them, or placed on the
+wrong thing: a box posed on a smaller brick explains every brick point. The frame's depth can: along the rays of
+such a pose's model points the sensor saw the table behind (:func:`depth_consistency`). Numpy; metres; poses map
+model into camera points (``x_cam = R @ x_model + t``).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+
+import numpy as np
+from scipy.ndimage import minimum_filter
+
+from detector.geometry.icp import support_radius
+
+
+@dataclass
+class RangeImage:
+    """The frame's point cloud binned by viewing direction: for each cell of the normalised image plane
+    (x/z, y/z) the depth of the nearest point in it. cell: cell size in normalised coordinates (about radians);
+    origin: (2,) normalised coordinates of cell (0, 0)'s corner; z: (H,W) float64 metres, inf = no point;
+    near: (H,W) the nearest depth in each cell and its 8 neighbours."""
+
+    cell: float
+    origin: np.ndarray
+    z: np.ndarray
+    near: np.ndarray | None = None
+
+    def lookup(self, points: np.ndarray, around: bool = False) -> np.ndarray:
+        """Depth (metres) of the nearest frame point along each point's ray (``around``: in its cell or the 8 cells
+        around it): points (N,3) camera frame, metres. Returns (N,) float64, inf where the cell is empty, off the
+        image or the point is behind the camera."""
+        p = np.asarray(points, np.float64)
+        z = p[:, 2]
+        ok = z > 1e-6
+        uv = np.zeros((len(p), 2))
+        uv[ok] = p[ok, :2] / z[ok, None]
+        ij = np.floor((uv - self.origin) / self.cell).astype(np.int64)
+        h, w = self.z.shape
+        ok &= (ij[:, 0] >= 0) & (ij[:, 0] < w) & (ij[:, 1] >= 0) & (ij[:, 1] < h)
+        out = np.full(len(p), np.inf)
+        out[ok] = (self.near if around else self.z)[ij[ok, 1], ij[ok, 0]]
+        return out
+
+
+def range_image(cloud: np.ndarray, per_cell: float = 1.5, grid: int = 64) -> RangeImage:
+    """Bin a frame's cloud (M,3) camera frame, metres (a subsampled depth image) by viewing direction.
+
+    The cell is sized so that it holds ``per_cell`` points on average where the cloud has points (the area they
+    cover is counted on a ``grid`` x ``grid`` raster of their extent), so most cells hold a point whatever the
+    sensor's resolution and the cloud's subsampling. An empty cloud gives an image with no cells.
+    """
+    p = np.asarray(cloud, np.float64)
+    p = p[p[:, 2] > 1e-6] if len(p) else p.reshape(0, 3)
+    if len(p) < 2:
+        return RangeImage(1.0, np.zeros(2), np.full((0, 0), np.inf), np.full((0, 0), np.inf))
+    uv = p[:, :2] / p[:, 2:3]
+    origin = uv.min(axis=0)
+    extent = np.maximum(uv.max(axis=0) - origin, 1e-9)
+    coarse = np.minimum((uv - origin) / extent * grid, grid - 1).astype(np.int64)
+    covered = np.count_nonzero(np.bincount(coarse[:, 1] * grid + coarse[:, 0], minlength=grid * grid)) * \
+        float(np.prod(extent)) / grid ** 2
+    cell = float(np.sqrt(per_cell * covered / len(p)))
+    ij = np.floor((uv - origin) / cell).astype(np.int64)
+    w, h = ij.max(axis=0) + 1
+    z = np.full(h * w, np.inf)
+    np.minimum.at(z, ij[:, 1] * w + ij[:, 0], p[:, 2])
+    z = z.reshape(h, w)
+    return RangeImage(cell, origin, z, minimum_filter(z, size=3, mode="constant", cval=np.inf))
+
+
+def depth_consistency(ri: RangeImage, model_points: np.ndarray, R: np.ndarray, t: np.ndarray, tolerance: float,
+                      free_space: float) -> np.ndarray:
+    """How far the frame's depth agrees with the model under each pose: seen / (seen + seen through).
+
+    model_points: (P,3) model frame, metres; R (K,3,3), t (K,3) K poses; tolerance: metres, a model point whose
+    ray meets a frame point within this depth is seen; free_space: metres, a model point whose ray's nearest frame
+    point, and those of the rays next to it, lie more than this behind it is seen through: the sensor saw past where
+    the model claims a surface (a pose of the wrong size or shape, or on the wrong thing); the rays next to it keep
+    a model edge that falls a cell off the object's outline from counting. Points behind a nearer frame point
+    (occluded, or the model's own far side) and on empty rays count for neither. Returns (K,) float64 in [0, 1], 0 where no point
+    is either.
+    """
+    R, t = np.asarray(R, np.float64), np.asarray(t, np.float64)
+    x = np.einsum("kij,pj->kpi", R, np.asarray(model_points, np.float64)) + t[:, None]  # (K,P,3)
+    flat = x.reshape(-1, 3)
+    zs, around = ri.lookup(flat).reshape(x.shape[:2]), ri.lookup(flat, around=True).reshape(x.shape[:2])
+    zm = x[..., 2]
+    seen = (np.isfinite(zs) & (np.abs(zs - zm) <= tolerance)).sum(axis=1)
+    through = (np.isfinite(around) & (around > zm + free_space)).sum(axis=1)
+    return np.where(seen + through > 0, seen / np.maximum(seen + through, 1), 0.0)
+
+
+def depth_checked(detections: list, frame: RangeImage, objects, cfg) -> list:
+    """Copies of ``detections`` (:class:`detector.geometry.types.Detection`) whose scores fall with their depth
+    consistency (:func:`depth_consistency`) in the frame's range image: a detection at least ``cfg.depth_consistent``
+    consistent keeps its score, one below it is scaled by consistency / ``cfg.depth_consistent``. The tolerance is
+    ``cfg.depth_tolerance`` times the support distance (:func:`detector.geometry.icp.support_radius` of ``cfg``), the
+    free-space margin twice that. objects: the :class:`detector.geometry.types.ObjectInfo`; cfg: the
+    :class:`detector.geometry.types.GeometryConfig`."""
+    cons = np.zeros(len(detections))
+    for oid in {d.obj_id for d in detections}:  # each object's poses in one pass
+        rows = [k for k, d in enumerate(detections) if d.obj_id == oid]
+        tol = cfg.depth_tolerance * support_radius(cfg.support_distance, cfg.support_floor, objects.diameters[oid])
+        cons[rows] = depth_consistency(frame, objects.model_points[oid], np.stack([detections[k].R for k in rows]),
+                                       np.stack([detections[k].t for k in rows]), tol, 2 * tol)
+    return [replace(d, score=float(d.score * min(1.0, c / cfg.depth_consistent))) for d, c in zip(detections, cons)]
