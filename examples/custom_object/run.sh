@@ -12,8 +12,8 @@ A=.venv/bin/argen
 D=.venv/bin/detector
 OUT=${OUT:-data/custom}
 RUNS=${RUNS:-runs/custom}
-S1=${STAGE1_STEPS:-1000}     # the budget: stage 1 (find the object, its centre) and stage 2 (pose in crops)
-S2=${STAGE2_STEPS:-2500}
+S1=${STAGE1_STEPS:-2000}     # the budget: stage 1 (find the object, its centre) and stage 2 (pose in crops)
+S2=${STAGE2_STEPS:-6000}
 mkdir -p "$OUT"
 T="$OUT/times.txt"
 step() { local name=$1; shift; local t0=$SECONDS; "$@"; echo "$name $((SECONDS - t0)) s" | tee -a "$T"; }
