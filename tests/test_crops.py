@@ -128,6 +128,15 @@ def test_training_crops_with_a_neighbour_copy_keep_their_targets(labels):
     assert share[1.0] < 0.9 * share[0.0], share
 
 
+def largest_instance(lf):
+    """Frame 0 of an open label file, its instance with the most labelled points, and training_crop's first four
+    arguments for it: (frame, g, args)."""
+    tab, f = lf.objects, lf.frame(0)
+    g = int(np.argmax(f.instances.num_points))
+    m = tab.index(int(f.instances.obj_id[g]))
+    return f, g, (f, g, float(tab.diameters[m]), tab.sym_transforms[m])
+
+
 def test_camera_colour_augmentation_spans_real_camera_changes(labels):
     """The "camera" colour augmentation: seeded, in [0, 1], exposure below 0.7 and above 1.3 both drawn, some crops
     grey and some without colour; a training crop with it keeps the points and targets of the geometry."""
@@ -144,10 +153,7 @@ def test_camera_colour_augmentation_spans_real_camera_changes(labels):
     grey = sum(d.any() and np.abs(d - d.mean(1, keepdims=True)).max() < 0.1 for d in draws)
     assert 3 <= zeros <= 30 and 10 <= grey <= 60
     with LabelFile(labels) as lf:
-        tab, f = lf.objects, lf.frame(0)
-        g = int(np.argmax(f.instances.num_points))
-        m = tab.index(int(f.instances.obj_id[g]))
-        args = (f, g, float(tab.diameters[m]), tab.sym_transforms[m])
+        f, g, args = largest_instance(lf)
         plain = training_crop(*args, CropConfig(roll_deg=0.0), np.random.default_rng(3), NORMALISATION, augment=True)
         cam = training_crop(*args, CropConfig(roll_deg=0.0, colour="camera"), np.random.default_rng(3), NORMALISATION,
                             augment=True)
@@ -155,15 +161,47 @@ def test_camera_colour_augmentation_spans_real_camera_changes(labels):
     assert not np.allclose(plain["features"][:, 3:6], cam["features"][:, 3:6])
 
 
+def test_camera_tone_changes_contrast_and_saturation_and_keeps_the_targets(labels):
+    """"camera_tone": the "camera" draws (the same exposure, white balance and gamma under the same seed: without
+    the tone curve the colours are "camera"'s bit for bit) followed by contrast and saturation gains: across seeds
+    both less and more saturated and contrasted crops than "camera" gives, more clipped channels, colours in [0, 1];
+    a training crop with it keeps the points and targets."""
+    from detector.data.augment import camera_colour
+
+    rgb = np.random.default_rng(0).uniform(0.15, 0.85, (300, 3)).astype(np.float32)
+    sat, con, clipped = [], [], [0, 0]
+    for k in range(200):
+        cam, tone = camera_colour(rgb, np.random.default_rng(k)), camera_colour(rgb, np.random.default_rng(k), True)
+        assert tone.dtype == np.float32 and tone.min() >= 0 and tone.max() <= 1
+        assert np.array_equal(cam, camera_colour(rgb, np.random.default_rng(k), False))
+        if not cam.any():  # a depth-only draw stays one
+            assert not tone.any()
+            continue
+        if np.abs(cam - cam.mean(1, keepdims=True)).max() < 0.1:
+            continue  # grey: saturation cannot change it
+        spread = lambda c: np.abs(c - c.mean(1, keepdims=True)).mean()
+        sat.append(spread(tone) / spread(cam))
+        con.append(tone.mean(1).std() / cam.mean(1).std())
+        clipped[0] += int((cam >= 0.98).sum())
+        clipped[1] += int((tone >= 0.98).sum())
+    assert min(sat) < 0.8 and max(sat) > 1.4 and min(con) < 0.85 and max(con) > 1.3
+    assert clipped[1] > clipped[0]
+    with LabelFile(labels) as lf:
+        f, g, args = largest_instance(lf)
+        cam = training_crop(*args, CropConfig(roll_deg=0.0, colour="camera"), np.random.default_rng(3), NORMALISATION,
+                            augment=True)
+        tone = training_crop(*args, CropConfig(roll_deg=0.0, colour="camera_tone"), np.random.default_rng(3),
+                             NORMALISATION, augment=True)
+    assert np.array_equal(cam["fg"], tone["fg"]) and np.array_equal(cam["coords"], tone["coords"])
+    np.testing.assert_array_equal(cam["features"][:, [0, 1, 2, 6, 7, 8]], tone["features"][:, [0, 1, 2, 6, 7, 8]])
+
+
 def test_colour_none_crops_have_no_colour_and_the_same_targets(labels):
     """Stage 2 without colour input: a training crop's colour channels are zero, its points, normals and targets are
     the colour crop's (the crop draws no colour change), and the poser's crop input is zero there too."""
     none = input_normalisation("none")
     with LabelFile(labels) as lf:
-        tab, f = lf.objects, lf.frame(0)
-        g = int(np.argmax(f.instances.num_points))
-        m = tab.index(int(f.instances.obj_id[g]))
-        args = (f, g, float(tab.diameters[m]), tab.sym_transforms[m])
+        f, g, args = largest_instance(lf)
         rgb = training_crop(*args, CropConfig(roll_deg=0.0, colour="none"), np.random.default_rng(3), NORMALISATION,
                             augment=True)
         bare = training_crop(*args, CropConfig(roll_deg=0.0, colour="none"), np.random.default_rng(3), none,

@@ -308,7 +308,7 @@ def test_camera_colour_augmentation_changes_a_whole_frame_like_another_camera(fr
             ratios.append(rgb.mean() / feats[:, 3:6].mean())
     assert 0 < none < 10 and 0 < grey < 15  # some depth-only and grey frames, most in colour
     assert min(ratios) < 0.75 and max(ratios) > 1.25  # spans exposures x0.7 and x1.3 (light stays within 15 %)
-    with pytest.raises(DetectorError, match="colour must be light, camera or none"):
+    with pytest.raises(DetectorError, match="colour must be light, camera, camera_tone or none"):
         make_config("cpu", {"colour": "sepia"})
 
 

@@ -157,7 +157,7 @@ def validate_config(cfg: TrainConfig) -> None:
         (cfg.num_workers >= 0 and cfg.val_frames >= 0, "num_workers and val_frames must be >= 0"),
         (cfg.device in ("auto", "cpu", "cuda"), "device must be auto, cpu or cuda"),
         (cfg.indices in ("auto", "loader", "model"), "indices must be auto, loader or model"),
-        (cfg.colour in COLOUR_MODES, "colour must be light, camera or none"),
+        (cfg.colour in COLOUR_MODES, "colour must be light, camera, camera_tone or none"),
     ]
     for ok, msg in checks:
         if not ok:

@@ -207,5 +207,5 @@ def load_stage2_config(data: dict | None, overrides: dict | None = None) -> Stag
         raise DetectorError("stage-2 config: crop.neighbour must lie in [0, 1] and crop.neighbour_offset be "
                             "[min, max] with 0 < min <= max")
     if cfg.crop.colour not in COLOUR_MODES:
-        raise DetectorError(f"stage-2 config: crop.colour must be light, camera or none, got '{cfg.crop.colour}'")
+        raise DetectorError(f"stage-2 config: crop.colour must be light, camera, camera_tone or none, got '{cfg.crop.colour}'")
     return cfg

@@ -59,4 +59,23 @@ for a in "neither:$G.depth_check=false $G.other_classes=2" "depth_check_only:$G.
   [ -f "$REP/inference_$name/report.json" ] || \
     $D eval "$RUN/model.pt" "$OUT/ycbv_real.h5" --out "$REP/inference_$name" --icp --min-visib 0 --quiet "${sets[@]}"
 done
+# 7. stage 2's colour changes (RESULTS.md, the tone curve): stage 2 alone, 3000 steps, `camera` against
+#    `camera_tone`, two seeds each, beside the run's stage 1 (a run folder holding the run's finished stage 1 and its
+#    own two_stage.yaml, resumed: a finished stage is not trained again); about 8 minutes each. Only with
+#    COLOUR_MODES=1.
+if [ "${COLOUR_MODES:-0}" = 1 ]; then
+  for mode in camera camera_tone; do
+    for seed in 0 1; do
+      r="$RUN-s2-$mode-$seed"
+      if [ ! -f "$r/model.pt" ]; then
+        [ -d "$r/stage1" ] || { mkdir -p "$r" && cp -r "$RUN/stage1" "$r/"; }
+        printf 'stage1:\n  colour: none\nstage2:\n  crop.colour: %s\n  steps: 3000\n  seed: %s\n' "$mode" "$seed" \
+          > "$r/two_stage.yaml"
+        $D train "$OUT/ycbv_train.h5" --out "$r" --resume --quiet
+      fi
+      [ -f "$REP/s2-$mode-$seed/report.json" ] || \
+        $D eval "$r/model.pt" "$OUT/ycbv_real.h5" --out "$REP/s2-$mode-$seed" --icp --min-visib 0 --quiet
+    done
+  done
+fi
 cat "$T"
