@@ -23,6 +23,9 @@ def normalised_colour(rgb: np.ndarray, normalisation: dict) -> np.ndarray:
 #: and at inference, whatever camera gives the frame).
 COLOUR_MODES = ("light", "camera", "camera_tone", "none")
 
+#: COLOUR_MODES as a config error names them.
+COLOUR_MODES_TEXT = ", ".join(COLOUR_MODES[:-1]) + " or " + COLOUR_MODES[-1]
+
 #: The modes that change colour with camera_colour, and whether with its tone curve.
 CAMERA_TONE = {"camera": False, "camera_tone": True}
 
@@ -64,7 +67,8 @@ def camera_colour(rgb: np.ndarray, rng: np.random.Generator, tone: bool = False)
         contrast, saturation = np.exp(rng.uniform(*np.log(CONTRAST))), np.exp(rng.uniform(*np.log(SATURATION)))
         lum = out.mean(axis=1, keepdims=True)
         out = lum + (out - lum) * saturation
-        out = np.clip(out.mean() + (out - out.mean()) * contrast, 0.0, 1.0)
+        mean = out.mean()
+        out = np.clip(mean + (out - mean) * contrast, 0.0, 1.0)
     if u < P_NO_COLOUR + P_GREY:
         out = np.repeat(out.mean(1, keepdims=True), 3, axis=1)
     return np.clip(out + rng.normal(0.0, 0.02, out.shape), 0.0, 1.0).astype(np.float32)

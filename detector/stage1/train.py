@@ -34,7 +34,7 @@ import yaml
 from tqdm import tqdm
 
 from detector.config import NETWORK_PRESETS, config_from_dict, config_to_dict, load_preset, load_yaml, set_dotted
-from detector.data.augment import COLOUR_MODES
+from detector.data.augment import COLOUR_MODES, COLOUR_MODES_TEXT
 from detector.data.batches import StreamBatchSampler, collate
 from detector.errors import DetectorError
 from detector.stage1.dataset import PointDataset
@@ -157,7 +157,7 @@ def validate_config(cfg: TrainConfig) -> None:
         (cfg.num_workers >= 0 and cfg.val_frames >= 0, "num_workers and val_frames must be >= 0"),
         (cfg.device in ("auto", "cpu", "cuda"), "device must be auto, cpu or cuda"),
         (cfg.indices in ("auto", "loader", "model"), "indices must be auto, loader or model"),
-        (cfg.colour in COLOUR_MODES, "colour must be light, camera, camera_tone or none"),
+        (cfg.colour in COLOUR_MODES, f"colour must be {COLOUR_MODES_TEXT}"),
     ]
     for ok, msg in checks:
         if not ok:

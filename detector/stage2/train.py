@@ -18,7 +18,7 @@ import yaml
 from tqdm import tqdm
 
 from detector.config import config_from_dict, config_to_dict, set_dotted
-from detector.data.augment import COLOUR_MODES, input_normalisation
+from detector.data.augment import COLOUR_MODES, COLOUR_MODES_TEXT, input_normalisation
 from detector.data.batches import StreamBatchSampler
 from detector.errors import DetectorError
 from detector.stage2.crops import CropConfig
@@ -207,5 +207,5 @@ def load_stage2_config(data: dict | None, overrides: dict | None = None) -> Stag
         raise DetectorError("stage-2 config: crop.neighbour must lie in [0, 1] and crop.neighbour_offset be "
                             "[min, max] with 0 < min <= max")
     if cfg.crop.colour not in COLOUR_MODES:
-        raise DetectorError(f"stage-2 config: crop.colour must be light, camera, camera_tone or none, got '{cfg.crop.colour}'")
+        raise DetectorError(f"stage-2 config: crop.colour must be {COLOUR_MODES_TEXT}, got '{cfg.crop.colour}'")
     return cfg
