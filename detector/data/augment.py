@@ -19,15 +19,18 @@ def normalised_colour(rgb: np.ndarray, normalisation: dict) -> np.ndarray:
 
 #: The colour input of both stages' training: "light" (colour with a small gain and noise), "camera" (colour changed as
 #: another camera would give it: camera_colour), "camera_tone" ("camera" plus the camera's tone curve: contrast and
-#: colour saturation, camera_colour with ``tone``) or "none" (no colour: the network sees geometry only, in training
-#: and at inference, whatever camera gives the frame).
-COLOUR_MODES = ("light", "camera", "camera_tone", "none")
+#: colour saturation, camera_colour with ``tone``), "camera_rgb" ("camera" without its grey and colourless draws:
+#: every input keeps three colour channels, camera_colour with ``grey`` False) or "none" (no colour: the network sees
+#: geometry only, in training and at inference, whatever camera gives the frame).
+COLOUR_MODES = ("light", "camera", "camera_tone", "camera_rgb", "none")
 
 #: COLOUR_MODES as a config error names them.
 COLOUR_MODES_TEXT = ", ".join(COLOUR_MODES[:-1]) + " or " + COLOUR_MODES[-1]
 
-#: The modes that change colour with camera_colour, and whether with its tone curve.
-CAMERA_TONE = {"camera": False, "camera_tone": True}
+#: The modes that change colour with camera_colour, and its options for each: the tone curve (``tone``) and the grey
+#: and colourless draws (``grey``).
+CAMERA_MODES = {"camera": {"tone": False, "grey": True}, "camera_tone": {"tone": True, "grey": True},
+                "camera_rgb": {"tone": False, "grey": False}}
 
 #: camera_colour's ranges: exposure gain, per-channel white-balance gain, gamma, and the chances of a grey crop and
 #: of one without colour.
@@ -48,17 +51,18 @@ CONTRAST = (0.7, 1.6)
 SATURATION = (0.6, 1.8)
 
 
-def camera_colour(rgb: np.ndarray, rng: np.random.Generator, tone: bool = False) -> np.ndarray:
+def camera_colour(rgb: np.ndarray, rng: np.random.Generator, tone: bool = False, grey: bool = True) -> np.ndarray:
     """Colours as another camera might give them: ``(rgb * exposure * white_balance) ** gamma`` plus 2 % noise, with
-    the exposure and gamma drawn log-uniformly from :data:`EXPOSURE` and :data:`GAMMA`; with chance
-    :data:`P_GREY` the crop is grey, with :data:`P_NO_COLOUR` all zeros (a depth-only input). With ``tone`` the
+    the exposure and gamma drawn log-uniformly from :data:`EXPOSURE` and :data:`GAMMA`; with ``grey``, with chance
+    :data:`P_GREY` the crop is grey and with :data:`P_NO_COLOUR` all zeros (a depth-only input; without ``grey``
+    those draws keep their colours, which are otherwise drawn as with it). With ``tone`` the
     colours also get a tone curve after the gamma: a contrast gain (:data:`CONTRAST`) about their mean luminance and a
     saturation gain (:data:`SATURATION`) about each point's luminance, clipped to [0, 1] (without ``tone`` the draws
     are those of before it existed).
 
     rgb: (n,3) in [0, 1]. Returns (n,3) float32 in [0, 1].
     """
-    u = rng.random()
+    u = rng.random() if grey else 1.0 + rng.random()  # the same draws either way; u >= 1: never grey
     if u < P_NO_COLOUR:
         return np.zeros_like(rgb, dtype=np.float32)
     gain = np.exp(rng.uniform(*np.log(EXPOSURE))) * rng.uniform(1 - WHITE_BALANCE, 1 + WHITE_BALANCE, 3)
@@ -118,7 +122,7 @@ def augment(features: np.ndarray, control_points: np.ndarray, rng: np.random.Gen
     """Light augmentation: a small roll about the camera axis (points, normals and labels alike), xyz jitter,
     and a colour change: ``colour`` "light" is a brightness gain of +-15 % and colour noise, "camera" the whole
     frame's colours as another camera would give them (:func:`detector.data.augment.camera_colour`: exposure, white
-    balance, gamma, sometimes grey or none), "none" leaves colour as it is (the network does not see it).
+    balance, gamma, sometimes grey or none; "camera_tone" and "camera_rgb" its variants, :data:`CAMERA_MODES`), "none" leaves colour as it is (the network does not see it).
 
     features: (N, 9) float32, colour in [0, 1]; control_points: (N, 9, 3) float32 metres (zeros = background).
     Returns new arrays of the same shapes; background control points stay zero.
@@ -130,8 +134,8 @@ def augment(features: np.ndarray, control_points: np.ndarray, rng: np.random.Gen
     cps = (control_points @ R.T).astype(np.float32)
     jitter = np.clip(rng.normal(0.0, JITTER_SIGMA, (len(out), 3)), -JITTER_CLIP, JITTER_CLIP)
     out[:, 0:3] += jitter.astype(np.float32)
-    if colour in CAMERA_TONE:
-        out[:, 3:6] = camera_colour(out[:, 3:6], rng, CAMERA_TONE[colour])
+    if colour in CAMERA_MODES:
+        out[:, 3:6] = camera_colour(out[:, 3:6], rng, **CAMERA_MODES[colour])
     elif colour == "light":
         gain = rng.uniform(1.0 - BRIGHTNESS, 1.0 + BRIGHTNESS)
         out[:, 3:6] = np.clip(out[:, 3:6] * gain + rng.normal(0.0, COLOUR_SIGMA, (len(out), 3)), 0.0, 1.0)

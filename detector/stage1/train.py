@@ -82,7 +82,7 @@ class TrainConfig:
     seg_pretrain_steps: int = 0  # first steps train the segmentation head only (the paper's pre-training)
     loss: LossConfig = field(default_factory=LossConfig)
     augment: bool = True
-    colour: str = "light"  # colour augmentation: light (brightness +-15 %) | camera (detector.data.augment.camera_colour)
+    colour: str = "light"  # colour augmentation: detector.data.augment.COLOUR_MODES
     class_ids: list[int] | None = None  # object ids to learn; None = all objects of the training file
     checkpoint_every: int = 200
     val_every: int = 200

@@ -17,7 +17,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import cKDTree
 
-from detector.data.augment import CAMERA_TONE, camera_colour, normalised_colour
+from detector.data.augment import CAMERA_MODES, camera_colour, normalised_colour
 
 
 @dataclass
@@ -35,8 +35,8 @@ class CropConfig:
     and the support plane below an object is a cue the network should keep); colour: the colour augmentation,
     "light" (a gain of 0.8-1.2 and noise on the normalised colours), "camera"
     (:func:`detector.data.augment.camera_colour`: exposure, white balance, gamma, sometimes grey or no colour at
-    all, as real cameras differ from the renderer), "camera_tone" ("camera" plus contrast and saturation gains) or
-    "none" (no colour input); neighbour: augmentation puts, with this chance, a copy of the
+    all, as real cameras differ from the renderer), "camera_tone" ("camera" plus contrast and saturation gains),
+    "camera_rgb" ("camera" never grey or colourless) or "none" (no colour input); neighbour: augmentation puts, with this chance, a copy of the
     instance's own points beside it as background (:func:`add_neighbour`), at a lateral distance of
     ``neighbour_offset`` (min, max) diameters between the centres: scenes such as LC-HF hold several instances of
     one object side by side, and a crop around one of them must not take its neighbour for it.
@@ -230,8 +230,8 @@ def training_crop(frame, g: int, diameter: float, sym_transforms: np.ndarray, cf
         p = p + rng.normal(0.0, 0.001, p.shape)
         feats[:, :3] = ((p - centre) / radius).astype(np.float32)
         feats[:, 6:9] = (feats[:, 6:9] @ Q.T.astype(np.float32))
-        if cfg.colour in CAMERA_TONE:
-            rgb = camera_colour(np.asarray(features)[rows, 3:6], rng, CAMERA_TONE[cfg.colour])
+        if cfg.colour in CAMERA_MODES:
+            rgb = camera_colour(np.asarray(features)[rows, 3:6], rng, **CAMERA_MODES[cfg.colour])
             feats[:, 3:6] = normalised_colour(rgb, normalisation)
         elif cfg.colour == "light":
             feats[:, 3:6] = feats[:, 3:6] * np.float32(rng.uniform(0.8, 1.2)) + rng.normal(0, 0.1, 3).astype(np.float32)
