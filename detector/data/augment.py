@@ -1,7 +1,7 @@
 """Colour normalisation of the network input and the augmentations both stages train with: the frame-level roll,
-jitter and colour change of stage 1 (:func:`augment`), and the colour modes (``light``, ``camera``:
-:func:`camera_colour`, colours as another camera would give them; ``none``: no colour input) that both stages
-offer."""
+jitter and colour change of stage 1 (:func:`augment`), and the colour modes (:data:`COLOUR_MODES`: ``light``,
+``camera`` and its variants, :func:`camera_colour`, colours as another camera would give them; ``none``: no colour
+input) that both stages offer."""
 
 from __future__ import annotations
 
@@ -122,7 +122,8 @@ def augment(features: np.ndarray, control_points: np.ndarray, rng: np.random.Gen
     """Light augmentation: a small roll about the camera axis (points, normals and labels alike), xyz jitter,
     and a colour change: ``colour`` "light" is a brightness gain of +-15 % and colour noise, "camera" the whole
     frame's colours as another camera would give them (:func:`detector.data.augment.camera_colour`: exposure, white
-    balance, gamma, sometimes grey or none; "camera_tone" and "camera_rgb" its variants, :data:`CAMERA_MODES`), "none" leaves colour as it is (the network does not see it).
+    balance, gamma, sometimes grey or none; "camera_tone" and "camera_rgb" its variants, :data:`CAMERA_MODES`),
+    "none" leaves colour as it is (the network does not see it).
 
     features: (N, 9) float32, colour in [0, 1]; control_points: (N, 9, 3) float32 metres (zeros = background).
     Returns new arrays of the same shapes; background control points stay zero.
