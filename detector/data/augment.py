@@ -17,20 +17,20 @@ def normalised_colour(rgb: np.ndarray, normalisation: dict) -> np.ndarray:
     return ((rgb - normalisation["rgb_mean"]) / normalisation["rgb_std"]).astype(np.float32)
 
 
+#: The modes that change colour with camera_colour, and its options for each: the tone curve (``tone``) and the grey
+#: and colourless draws (``grey``).
+CAMERA_MODES = {"camera": {"tone": False, "grey": True}, "camera_tone": {"tone": True, "grey": True},
+                "camera_rgb": {"tone": False, "grey": False}}
+
 #: The colour input of both stages' training: "light" (colour with a small gain and noise), "camera" (colour changed as
 #: another camera would give it: camera_colour), "camera_tone" ("camera" plus the camera's tone curve: contrast and
 #: colour saturation, camera_colour with ``tone``), "camera_rgb" ("camera" without its grey and colourless draws:
 #: every input keeps three colour channels, camera_colour with ``grey`` False) or "none" (no colour: the network sees
 #: geometry only, in training and at inference, whatever camera gives the frame).
-COLOUR_MODES = ("light", "camera", "camera_tone", "camera_rgb", "none")
+COLOUR_MODES = ("light", *CAMERA_MODES, "none")
 
 #: COLOUR_MODES as a config error names them.
 COLOUR_MODES_TEXT = ", ".join(COLOUR_MODES[:-1]) + " or " + COLOUR_MODES[-1]
-
-#: The modes that change colour with camera_colour, and its options for each: the tone curve (``tone``) and the grey
-#: and colourless draws (``grey``).
-CAMERA_MODES = {"camera": {"tone": False, "grey": True}, "camera_tone": {"tone": True, "grey": True},
-                "camera_rgb": {"tone": False, "grey": False}}
 
 #: camera_colour's ranges: exposure gain, per-channel white-balance gain, gamma, and the chances of a grey crop and
 #: of one without colour.
@@ -62,8 +62,8 @@ def camera_colour(rgb: np.ndarray, rng: np.random.Generator, tone: bool = False,
 
     rgb: (n,3) in [0, 1]. Returns (n,3) float32 in [0, 1].
     """
-    u = rng.random() if grey else 1.0 + rng.random()  # the same draws either way; u >= 1: never grey
-    if u < P_NO_COLOUR:
+    u = rng.random()  # drawn with or without ``grey``: the later draws are the same either way
+    if grey and u < P_NO_COLOUR:
         return np.zeros_like(rgb, dtype=np.float32)
     gain = np.exp(rng.uniform(*np.log(EXPOSURE))) * rng.uniform(1 - WHITE_BALANCE, 1 + WHITE_BALANCE, 3)
     out = np.clip(np.asarray(rgb, np.float64) * gain, 0.0, 1.0) ** np.exp(rng.uniform(*np.log(GAMMA)))
@@ -73,7 +73,7 @@ def camera_colour(rgb: np.ndarray, rng: np.random.Generator, tone: bool = False,
         out = lum + (out - lum) * saturation
         mean = out.mean()
         out = np.clip(mean + (out - mean) * contrast, 0.0, 1.0)
-    if u < P_NO_COLOUR + P_GREY:
+    if grey and u < P_NO_COLOUR + P_GREY:
         out = np.repeat(out.mean(1, keepdims=True), 3, axis=1)
     return np.clip(out + rng.normal(0.0, 0.02, out.shape), 0.0, 1.0).astype(np.float32)
 
