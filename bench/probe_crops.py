@@ -9,13 +9,12 @@ from __future__ import annotations
 
 import argparse
 import time
-from pathlib import Path
 
 import numpy as np
 import torch
-import trimesh
 from scipy.spatial import cKDTree
 
+from argen.bop import model_path, read_mesh
 from argen.h5 import LabelFile
 from detector.evaluation.metrics import pose_error
 from detector.geometry.types import ObjectInfo
@@ -34,11 +33,12 @@ def painted(frame, models_dir: str, cache: dict) -> np.ndarray:
     for g in range(len(inst)):
         oid = int(inst.obj_id[g])
         if oid not in cache:
-            mesh = trimesh.load(Path(models_dir) / f"obj_{oid:06d}.ply", process=False)
+            path = model_path(models_dir, oid)
+            mesh = read_mesh(path)  # metres
             colours = getattr(mesh.visual, "vertex_colors", None)
             if colours is None or len(colours) != len(mesh.vertices):
-                raise SystemExit(f"{models_dir}: obj_{oid:06d}.ply has no vertex colours")
-            cache[oid] = (np.asarray(mesh.vertices, np.float64) / 1000.0, np.asarray(colours)[:, :3] / 255.0)
+                raise SystemExit(f"{path}: no vertex colours")
+            cache[oid] = (np.asarray(mesh.vertices, np.float64), np.asarray(colours)[:, :3] / 255.0)
         v, col = cache[oid]
         d, j = cKDTree(v @ np.asarray(inst.R[g]).T + np.asarray(inst.t[g])).query(xyz)
         near = d < 0.004
