@@ -214,6 +214,59 @@ def test_colour_none_crops_have_no_colour_and_the_same_targets(labels):
     assert not np.any(inp[:, 3:6]) and np.any(inp[:, :3])
 
 
+def test_colour_ranks_ignore_any_increasing_change_of_a_channel():
+    """colour_ranks: each channel's rank among the points, zero mean and unit variance; equal values share a rank;
+    an increasing change of each channel (gain, white balance, gamma, an offset) leaves it bit for bit the same,
+    a change of the colours' order (another colour at some points) does not."""
+    from detector.data.augment import colour_ranks
+
+    rng = np.random.default_rng(0)
+    rgb = rng.uniform(0.05, 0.7, (256, 3))
+    r = colour_ranks(rgb)
+    assert r.dtype == np.float32 and r.shape == rgb.shape
+    np.testing.assert_allclose(r.mean(0), 0.0, atol=1e-6)
+    np.testing.assert_allclose(r.std(0), 1.0, atol=1e-3)
+    changed = (rgb * np.array([1.3, 0.9, 1.1])) ** np.array([0.6, 1.0, 1.5]) + 0.02
+    np.testing.assert_array_equal(colour_ranks(changed), r)
+    other = rgb.copy()
+    other[:20] = other[20:40, ::-1]
+    assert not np.array_equal(colour_ranks(other), r)
+    ties = colour_ranks(np.array([[0.2, 1.0, 0.5], [0.9, 1.0, 0.5], [0.4, 1.0, 0.5]]))
+    np.testing.assert_allclose(ties[:, 0], np.array([-1.0, 1.0, 0.0]) * np.sqrt(12) / 3, rtol=1e-6)
+    assert not np.any(ties[:, 1:]) and colour_ranks(np.zeros((0, 3))).shape == (0, 3)
+
+
+def test_rank_crops_are_the_same_under_another_cameras_colours_and_keep_the_targets(labels):
+    """Stage 2 with colour ranks ("rank"): the poser's input of a crop is the same when the frame's colours come
+    from a camera with another exposure, white balance and gamma; a training crop keeps the points and targets of
+    "camera_tone" (the same draws) and its colour channels are the ranks of the changed colours."""
+    from detector.data.augment import camera_colour, colour_ranks
+
+    rank = input_normalisation("rank")
+    assert rank["colour"] == "rank"
+    with LabelFile(labels) as lf:
+        f, g, args = largest_instance(lf)
+        tone = training_crop(*args, CropConfig(roll_deg=0.0, colour="camera_tone"), np.random.default_rng(3),
+                             NORMALISATION, augment=True)
+        ranked = training_crop(*args, CropConfig(roll_deg=0.0, colour="rank"), np.random.default_rng(3), rank,
+                               augment=True)
+        feats = np.asarray(f.features, np.float32)
+        rows = np.flatnonzero(np.linalg.norm(feats[:, :3] - feats[np.asarray(f.instance) == g, :3].mean(0), axis=1)
+                              < 0.08)
+        other = feats.copy()
+        other[:, 3:6] = (feats[:, 3:6] * np.array([0.7, 0.6, 0.8], np.float32)) ** np.float32(1.4)
+        a = crop_input(feats, rows, feats[rows, :3].mean(0), 0.08, rank)
+        b = crop_input(other, rows, feats[rows, :3].mean(0), 0.08, rank)
+    assert len(rows) > 50 and len(np.unique(feats[rows, 3])) > 10
+    np.testing.assert_array_equal(a, b)
+    assert not np.allclose(crop_input(feats, rows, feats[rows, :3].mean(0), 0.08, NORMALISATION)[:, 3:6],
+                           crop_input(other, rows, feats[rows, :3].mean(0), 0.08, NORMALISATION)[:, 3:6])
+    assert np.array_equal(tone["fg"], ranked["fg"]) and np.array_equal(tone["coords"], ranked["coords"])
+    np.testing.assert_array_equal(tone["features"][:, [0, 1, 2, 6, 7, 8]], ranked["features"][:, [0, 1, 2, 6, 7, 8]])
+    rgb = tone["features"][:, 3:6] * NORMALISATION["rgb_std"] + NORMALISATION["rgb_mean"]  # "camera_tone"'s colours
+    np.testing.assert_allclose(ranked["features"][:, 3:6], colour_ranks(rgb), atol=1e-5)
+
+
 def test_symmetry_targets_are_the_coordinates_under_each_equivalent_pose():
     rng = np.random.default_rng(0)
     S = np.tile(np.eye(4), (2, 1, 1))

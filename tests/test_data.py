@@ -308,7 +308,7 @@ def test_camera_colour_augmentation_changes_a_whole_frame_like_another_camera(fr
             ratios.append(rgb.mean() / feats[:, 3:6].mean())
     assert 0 < none < 10 and 0 < grey < 15  # some depth-only and grey frames, most in colour
     assert min(ratios) < 0.75 and max(ratios) > 1.25  # spans exposures x0.7 and x1.3 (light stays within 15 %)
-    with pytest.raises(DetectorError, match="colour must be light, camera, camera_tone, camera_rgb or none"):
+    with pytest.raises(DetectorError, match="colour must be light, camera, camera_tone, camera_rgb, rank or none"):
         make_config("cpu", {"colour": "sepia"})
 
 
@@ -330,6 +330,36 @@ def test_camera_rgb_is_camera_without_its_grey_and_colourless_frames(frames):
             differ += 1
             assert not cam.any() or np.allclose(cam, cam.mean(1, keepdims=True), atol=0.1)  # camera's grey or none
     assert 0 < differ < 20
+
+
+def test_rank_frames_are_the_same_under_another_cameras_colours(h5_path, frames):
+    """colour "rank" in stage 1: an item's colour channels are the ranks of the frame's sampled colours after
+    "camera_tone"'s change (same geometry and labels under the same seed); the inference input of a frame is the
+    same when another camera's exposure, white balance and gamma changed its colours, and differs without ranks."""
+    from detector.data.augment import colour_ranks
+    from detector.stage1.dataset import inference_batch
+
+    tone = PointDataset(h5_path, small_model_config(), NUM_POINTS, augment=True, seed=4, colour="camera_tone")
+    rank = PointDataset(h5_path, small_model_config(), NUM_POINTS, augment=True, seed=4, colour="rank")
+    assert rank.normalisation == {**NORMALISATION, "colour": "rank"}
+    a, b = tone[(1, 2)], rank[(1, 2)]
+    for k in ("cls", "instance", "control_points"):
+        assert torch.equal(a[k], b[k])
+    assert torch.equal(a["features"][:, [0, 1, 2, 6, 7, 8]], b["features"][:, [0, 1, 2, 6, 7, 8]])
+    rgb = a["features"][:, 3:6].numpy() * NORMALISATION["rgb_std"] + NORMALISATION["rgb_mean"]
+    np.testing.assert_allclose(b["features"][:, 3:6].numpy(), colour_ranks(rgb), atol=1e-5)
+    feats = frames[0][0]
+    other = feats.copy()
+    other[:, 3:6] = (feats[:, 3:6] * np.array([0.75, 0.7, 0.6], np.float32)) ** np.float32(1.3)
+    cfg = small_model_config()
+
+    def inputs(norm):
+        return [inference_batch(f, cfg, NUM_POINTS, seed=1, normalisation=norm)["features"] for f in (feats, other)]
+
+    x, y = inputs(rank.normalisation)
+    assert torch.equal(x, y)
+    x, y = inputs(NORMALISATION)
+    assert not torch.allclose(x[..., 3:6], y[..., 3:6])
 
 
 def test_colour_none_gives_the_network_geometry_only(h5_path, frames):

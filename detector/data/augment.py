@@ -6,27 +6,46 @@ input) that both stages offer."""
 from __future__ import annotations
 
 import numpy as np
+from scipy.stats import rankdata
 
 
 def normalised_colour(rgb: np.ndarray, normalisation: dict) -> np.ndarray:
-    """Network colour input: ``(rgb - rgb_mean) / rgb_std``, or zeros for a network without colour input
-    (``normalisation["colour"] == "none"``). rgb: (n,3) in [0, 1]; normalisation: {"rgb_mean", "rgb_std"[, "colour"]}
+    """Network colour input: ``(rgb - rgb_mean) / rgb_std``; zeros for a network without colour input
+    (``normalisation["colour"] == "none"``); for ``"rank"`` each channel's rank among the n points given
+    (:func:`colour_ranks`). rgb: (n,3) in [0, 1]; normalisation: {"rgb_mean", "rgb_std"[, "colour"]}
     (:func:`input_normalisation`). Returns (n,3) float32."""
-    if normalisation.get("colour") == "none":
+    mode = normalisation.get("colour")
+    if mode == "none":
         return np.zeros(np.shape(rgb), np.float32)
+    if mode == "rank":
+        return colour_ranks(rgb)
     return ((rgb - normalisation["rgb_mean"]) / normalisation["rgb_std"]).astype(np.float32)
+
+
+def colour_ranks(rgb: np.ndarray) -> np.ndarray:
+    """Each colour channel replaced by its rank among the n points, scaled to zero mean and unit variance
+    (``((rank + 0.5) / n - 0.5) * sqrt(12)``, equal values sharing their mean rank). Unchanged by any increasing
+    change of a channel (exposure, white balance, gamma, contrast) short of clipping. rgb: (n,3). Returns (n,3)
+    float32 in (-sqrt(3), sqrt(3))."""
+    rgb = np.asarray(rgb)
+    if len(rgb) == 0:
+        return np.zeros(np.shape(rgb), np.float32)
+    ranks = rankdata(rgb, method="average", axis=0) - 0.5  # 0.5 .. n - 0.5
+    return ((ranks / len(rgb) - 0.5) * np.sqrt(12.0)).astype(np.float32)
 
 
 #: The modes that change colour with camera_colour, and its options for each: the tone curve (``tone``) and the grey
 #: and colourless draws (``grey``).
 CAMERA_MODES = {"camera": {"tone": False, "grey": True}, "camera_tone": {"tone": True, "grey": True},
-                "camera_rgb": {"tone": False, "grey": False}}
+                "camera_rgb": {"tone": False, "grey": False}, "rank": {"tone": True, "grey": True}}
 
 #: The colour input of both stages' training: "light" (colour with a small gain and noise), "camera" (colour changed as
 #: another camera would give it: camera_colour), "camera_tone" ("camera" plus the camera's tone curve: contrast and
 #: colour saturation, camera_colour with ``tone``), "camera_rgb" ("camera" without its grey and colourless draws:
-#: every input keeps three colour channels, camera_colour with ``grey`` False) or "none" (no colour: the network sees
-#: geometry only, in training and at inference, whatever camera gives the frame).
+#: every input keeps three colour channels, camera_colour with ``grey`` False), "rank" ("camera_tone"'s changes, and
+#: the network sees each channel as its rank among the crop's points in stage 2, the sampled frame's in stage 1:
+#: colour_ranks, the same whatever the camera's exposure, white balance, gamma or contrast) or "none" (no colour: the
+#: network sees geometry only, in training and at inference, whatever camera gives the frame).
 COLOUR_MODES = ("light", *CAMERA_MODES, "none")
 
 #: COLOUR_MODES as a config error names them.
@@ -85,8 +104,9 @@ NORMALISATION: dict[str, float] = {"rgb_mean": 0.5, "rgb_std": 0.25}
 def input_normalisation(colour: str) -> dict:
     """The input normalisation a stage trained with colour mode ``colour`` (:data:`COLOUR_MODES`) keeps in its
     checkpoint: :data:`NORMALISATION`, plus ``"colour": "none"`` for a network without colour input (its colour
-    channels are zero in training and at inference)."""
-    return {**NORMALISATION, "colour": "none"} if colour == "none" else dict(NORMALISATION)
+    channels are zero in training and at inference) or ``"colour": "rank"`` for one that sees colour ranks
+    (:func:`colour_ranks`)."""
+    return {**NORMALISATION, "colour": colour} if colour in ("none", "rank") else dict(NORMALISATION)
 
 #: Augmentation strengths (metres, radians, colour units in [0, 1]).
 JITTER_SIGMA = 0.002
@@ -122,7 +142,8 @@ def augment(features: np.ndarray, control_points: np.ndarray, rng: np.random.Gen
     """Light augmentation: a small roll about the camera axis (points, normals and labels alike), xyz jitter,
     and a colour change: ``colour`` "light" is a brightness gain of +-15 % and colour noise, "camera" the whole
     frame's colours as another camera would give them (:func:`detector.data.augment.camera_colour`: exposure, white
-    balance, gamma, sometimes grey or none; "camera_tone" and "camera_rgb" its variants, :data:`CAMERA_MODES`),
+    balance, gamma, sometimes grey or none; "camera_tone", "camera_rgb" and "rank" its variants, :data:`CAMERA_MODES`;
+    "rank"'s network input is :func:`colour_ranks` of the changed colours, by :func:`normalise_features`),
     "none" leaves colour as it is (the network does not see it).
 
     features: (N, 9) float32, colour in [0, 1]; control_points: (N, 9, 3) float32 metres (zeros = background).

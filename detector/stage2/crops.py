@@ -36,10 +36,12 @@ class CropConfig:
     "light" (a gain of 0.8-1.2 and noise on the normalised colours), "camera"
     (:func:`detector.data.augment.camera_colour`: exposure, white balance, gamma, sometimes grey or no colour at
     all, as real cameras differ from the renderer), "camera_tone" ("camera" plus contrast and saturation gains),
-    "camera_rgb" ("camera" never grey or colourless) or "none" (no colour input); neighbour: augmentation puts,
-    with this chance, a copy of the instance's own points beside it as background (:func:`add_neighbour`), at a
-    lateral distance of ``neighbour_offset`` (min, max) diameters between the centres: scenes such as LC-HF hold
-    several instances of one object side by side, and a crop around one of them must not take its neighbour for it.
+    "camera_rgb" ("camera" never grey or colourless), "rank" ("camera_tone"'s changes, the network seeing each
+    channel's rank among the crop's points: :func:`detector.data.augment.colour_ranks`) or "none" (no colour input);
+    neighbour: augmentation puts, with this chance, a copy of the instance's own points beside it as background
+    (:func:`add_neighbour`), at a lateral distance of ``neighbour_offset`` (min, max) diameters between the centres:
+    scenes such as LC-HF hold several instances of one object side by side, and a crop around one of them must not
+    take its neighbour for it.
     """
 
     radius: float = 0.7

@@ -59,12 +59,13 @@ for a in "neither:$G.depth_check=false $G.other_classes=2" "depth_check_only:$G.
   [ -f "$REP/inference_$name/report.json" ] || \
     $D eval "$RUN/model.pt" "$OUT/ycbv_real.h5" --out "$REP/inference_$name" --icp --min-visib 0 --quiet "${sets[@]}"
 done
-# 7. stage 2's colour changes (RESULTS.md, the tone curve): stage 2 alone, 3000 steps, `camera` against
-#    `camera_tone`, two seeds each, beside the run's stage 1 (a run folder holding the run's finished stage 1 and its
-#    own two_stage.yaml, resumed: a finished stage is not trained again); about 8 minutes each. Only with
-#    COLOUR_MODES=1.
+# 7. stage 2's colour input (RESULTS.md, the tone curve and colour ranks): stage 2 alone, 3000 steps, `camera`
+#    against `camera_tone` and `rank`, two seeds each, beside the run's stage 1 (a run folder holding the run's
+#    finished stage 1 and its own two_stage.yaml, resumed: a finished stage is not trained again); about 8 minutes
+#    each; then each model's stage 2 given the true centres, with the frames' colours and painted with the models'
+#    own (bench/probe_crops.py). Only with COLOUR_MODES=1.
 if [ "${COLOUR_MODES:-0}" = 1 ]; then
-  for mode in camera camera_tone; do
+  for mode in camera camera_tone rank; do
     for seed in 0 1; do
       r="$RUN-s2-$mode-$seed"
       if [ ! -f "$r/model.pt" ]; then
@@ -75,6 +76,9 @@ if [ "${COLOUR_MODES:-0}" = 1 ]; then
       fi
       [ -f "$REP/s2-$mode-$seed/report.json" ] || \
         $D eval "$r/model.pt" "$OUT/ycbv_real.h5" --out "$REP/s2-$mode-$seed" --icp --min-visib 0 --quiet
+      echo "$r"
+      .venv/bin/python bench/probe_crops.py "$r/model.pt" "$OUT/ycbv_real.h5" --jitter 0
+      .venv/bin/python bench/probe_crops.py "$r/model.pt" "$OUT/ycbv_real.h5" --jitter 0 --paint-models "$M"
     done
   done
 fi
