@@ -236,6 +236,24 @@ def test_colour_ranks_ignore_any_increasing_change_of_a_channel():
     assert not np.any(ties[:, 1:]) and colour_ranks(np.zeros((0, 3))).shape == (0, 3)
 
 
+def test_grey_world_balances_each_channel_and_ignores_gains():
+    """grey_world: each channel scaled to a mean of 0.5, so any per-channel gain (exposure, white balance) gives the
+    same output; the ratio of two points' colours is kept; values clip at 2; a dark channel gives 0."""
+    from detector.data.augment import grey_world
+
+    rgb = np.random.default_rng(1).uniform(0.05, 0.6, (300, 3))
+    out = grey_world(rgb)
+    np.testing.assert_allclose(out.mean(0), 0.5)
+    np.testing.assert_allclose(grey_world(rgb * np.array([1.4, 0.8, 0.5])), out)
+    np.testing.assert_allclose(out[0] / out[1], rgb[0] / rgb[1])
+    spike = rgb.copy()
+    spike[0, 0] = 300 * spike[:, 0].mean()
+    assert grey_world(spike)[0, 0] == 2.0
+    dark = rgb.copy()
+    dark[:, 2] = 0.0
+    assert not np.any(grey_world(dark)[:, 2]) and grey_world(np.zeros((0, 3))).shape == (0, 3)
+
+
 def test_rank_crops_are_the_same_under_another_cameras_colours_and_keep_the_targets(labels):
     """Stage 2 with colour ranks ("rank"): the poser's input of a crop is the same when the frame's colours come
     from a camera with another exposure, white balance and gamma; a training crop keeps the points and targets of

@@ -170,7 +170,7 @@ import pickle  # noqa: E402
 import torch  # noqa: E402
 from pykdtree.kdtree import KDTree  # noqa: E402
 
-from detector.data.augment import NORMALISATION, augment, normalise_features  # noqa: E402
+from detector.data.augment import NORMALISATION, augment, input_normalisation, normalise_features  # noqa: E402
 from detector.data.batches import collate
 from detector.errors import DetectorError  # noqa: E402
 from detector.stage1.dataset import PointDataset, class_index, inference_batch, sample_rows
@@ -308,7 +308,8 @@ def test_camera_colour_augmentation_changes_a_whole_frame_like_another_camera(fr
             ratios.append(rgb.mean() / feats[:, 3:6].mean())
     assert 0 < none < 10 and 0 < grey < 15  # some depth-only and grey frames, most in colour
     assert min(ratios) < 0.75 and max(ratios) > 1.25  # spans exposures x0.7 and x1.3 (light stays within 15 %)
-    with pytest.raises(DetectorError, match="colour must be light, camera, camera_tone, camera_rgb, rank or none"):
+    modes = "light, camera, camera_tone, camera_rgb, rank, grey_world or none"
+    with pytest.raises(DetectorError, match=f"colour must be {modes}"):
         make_config("cpu", {"colour": "sepia"})
 
 
@@ -332,6 +333,19 @@ def test_camera_rgb_is_camera_without_its_grey_and_colourless_frames(frames):
     assert 0 < differ < 20
 
 
+def items_of_two_colour_modes(h5_path, base: str, mode: str):
+    """Item (epoch 1, frame 2) of two augmented datasets alike but for their colour modes, after checking that their
+    geometry and labels are the same and that ``mode``'s checkpoint normalisation names it; and ``base``'s colours
+    as the label file stores them ((N,3) in [0, 1], from its normalised input)."""
+    a, b = (PointDataset(h5_path, small_model_config(), NUM_POINTS, augment=True, seed=4, colour=c)[(1, 2)]
+            for c in (base, mode))
+    assert input_normalisation(mode) == {**NORMALISATION, "colour": mode}
+    for k in ("cls", "instance", "control_points"):
+        assert torch.equal(a[k], b[k])
+    assert torch.equal(a["features"][:, [0, 1, 2, 6, 7, 8]], b["features"][:, [0, 1, 2, 6, 7, 8]])
+    return a, b, a["features"][:, 3:6].numpy() * NORMALISATION["rgb_std"] + NORMALISATION["rgb_mean"]
+
+
 def test_rank_frames_are_the_same_under_another_cameras_colours(h5_path, frames):
     """colour "rank" in stage 1: an item's colour channels are the ranks of the frame's sampled colours after
     "camera_tone"'s change (same geometry and labels under the same seed); the inference input of a frame is the
@@ -339,14 +353,7 @@ def test_rank_frames_are_the_same_under_another_cameras_colours(h5_path, frames)
     from detector.data.augment import colour_ranks
     from detector.stage1.dataset import inference_batch
 
-    tone = PointDataset(h5_path, small_model_config(), NUM_POINTS, augment=True, seed=4, colour="camera_tone")
-    rank = PointDataset(h5_path, small_model_config(), NUM_POINTS, augment=True, seed=4, colour="rank")
-    assert rank.normalisation == {**NORMALISATION, "colour": "rank"}
-    a, b = tone[(1, 2)], rank[(1, 2)]
-    for k in ("cls", "instance", "control_points"):
-        assert torch.equal(a[k], b[k])
-    assert torch.equal(a["features"][:, [0, 1, 2, 6, 7, 8]], b["features"][:, [0, 1, 2, 6, 7, 8]])
-    rgb = a["features"][:, 3:6].numpy() * NORMALISATION["rgb_std"] + NORMALISATION["rgb_mean"]
+    a, b, rgb = items_of_two_colour_modes(h5_path, "camera_tone", "rank")
     np.testing.assert_allclose(b["features"][:, 3:6].numpy(), colour_ranks(rgb), atol=1e-5)
     feats = frames[0][0]
     other = feats.copy()
@@ -356,10 +363,38 @@ def test_rank_frames_are_the_same_under_another_cameras_colours(h5_path, frames)
     def inputs(norm):
         return [inference_batch(f, cfg, NUM_POINTS, seed=1, normalisation=norm)["features"] for f in (feats, other)]
 
-    x, y = inputs(rank.normalisation)
+    x, y = inputs(input_normalisation("rank"))
     assert torch.equal(x, y)
     x, y = inputs(NORMALISATION)
     assert not torch.allclose(x[..., 3:6], y[..., 3:6])
+
+
+def test_grey_world_frames_are_the_same_under_another_cameras_gains(h5_path, frames):
+    """colour "grey_world" in stage 1: an item's colour channels are the grey-world balance of "camera"'s changed
+    colours (same geometry and labels under the same seed: balanced, each channel's mean is 0.5); a frame's inference
+    input is the same under another camera's exposure and white balance (gains per channel), and differs under
+    another gamma or without the balance."""
+    from detector.data.augment import grey_world
+    from detector.stage1.dataset import inference_batch
+
+    a, b, rgb = items_of_two_colour_modes(h5_path, "camera", "grey_world")
+    balanced = b["features"][:, 3:6].numpy() * NORMALISATION["rgb_std"] + NORMALISATION["rgb_mean"]
+    np.testing.assert_allclose(balanced, grey_world(rgb), atol=1e-5)
+    np.testing.assert_allclose(balanced.mean(0)[rgb.mean(0) > 0.01], 0.5, atol=0.02)  # up to the clip at 2
+    feats = frames[0][0]
+    cfg = small_model_config()
+
+    def inputs(norm, change):
+        other = feats.copy()
+        other[:, 3:6] = change(feats[:, 3:6])
+        return [inference_batch(f, cfg, NUM_POINTS, seed=1, normalisation=norm)["features"] for f in (feats, other)]
+
+    x, y = inputs(input_normalisation("grey_world"), lambda c: c * np.array([0.75, 0.6, 0.9], np.float32))
+    torch.testing.assert_close(x, y, atol=1e-5, rtol=0)
+    x, y = inputs(input_normalisation("grey_world"), lambda c: c ** np.float32(1.5))
+    assert not torch.allclose(x[..., 3:6], y[..., 3:6], atol=1e-3)
+    x, y = inputs(NORMALISATION, lambda c: c * np.array([0.75, 0.6, 0.9], np.float32))
+    assert not torch.allclose(x[..., 3:6], y[..., 3:6], atol=1e-3)
 
 
 def test_colour_none_gives_the_network_geometry_only(h5_path, frames):

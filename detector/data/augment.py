@@ -12,14 +12,27 @@ from scipy.stats import rankdata
 def normalised_colour(rgb: np.ndarray, normalisation: dict) -> np.ndarray:
     """Network colour input: ``(rgb - rgb_mean) / rgb_std``; zeros for a network without colour input
     (``normalisation["colour"] == "none"``); for ``"rank"`` each channel's rank among the n points given
-    (:func:`colour_ranks`). rgb: (n,3) in [0, 1]; normalisation: {"rgb_mean", "rgb_std"[, "colour"]}
-    (:func:`input_normalisation`). Returns (n,3) float32."""
+    (:func:`colour_ranks`); for ``"grey_world"`` the colours first balanced over the n points (:func:`grey_world`).
+    rgb: (n,3) in [0, 1]; normalisation: {"rgb_mean", "rgb_std"[, "colour"]} (:func:`input_normalisation`). Returns
+    (n,3) float32."""
     mode = normalisation.get("colour")
     if mode == "none":
         return np.zeros(np.shape(rgb), np.float32)
     if mode == "rank":
         return colour_ranks(rgb)
+    if mode == "grey_world":
+        rgb = grey_world(rgb)
     return ((rgb - normalisation["rgb_mean"]) / normalisation["rgb_std"]).astype(np.float32)
+
+
+def grey_world(rgb: np.ndarray) -> np.ndarray:
+    """Grey-world balance: each channel divided by its mean over the n points and scaled so that the mean is 0.5,
+    then clipped to [0, 2] (a channel whose mean is below 1e-3 becomes 0). Unchanged by a gain on any channel
+    (exposure, white balance) short of clipping; hues relative to the scene's mean are kept. rgb: (n,3). Returns
+    (n,3) float64 in [0, 2]."""
+    rgb = np.asarray(rgb, np.float64)
+    mean = rgb.mean(axis=0) if len(rgb) else np.ones(3)
+    return np.where(mean > 1e-3, np.clip(rgb * (0.5 / np.maximum(mean, 1e-3)), 0.0, 2.0), 0.0)
 
 
 def colour_ranks(rgb: np.ndarray) -> np.ndarray:
@@ -37,15 +50,18 @@ def colour_ranks(rgb: np.ndarray) -> np.ndarray:
 #: The modes that change colour with camera_colour, and its options for each: the tone curve (``tone``) and the grey
 #: and colourless draws (``grey``).
 CAMERA_MODES = {"camera": {"tone": False, "grey": True}, "camera_tone": {"tone": True, "grey": True},
-                "camera_rgb": {"tone": False, "grey": False}, "rank": {"tone": True, "grey": True}}
+                "camera_rgb": {"tone": False, "grey": False}, "rank": {"tone": True, "grey": True},
+                "grey_world": {"tone": False, "grey": True}}
 
 #: The colour input of both stages' training: "light" (colour with a small gain and noise), "camera" (colour changed as
 #: another camera would give it: camera_colour), "camera_tone" ("camera" plus the camera's tone curve: contrast and
 #: colour saturation, camera_colour with ``tone``), "camera_rgb" ("camera" without its grey and colourless draws:
 #: every input keeps three colour channels, camera_colour with ``grey`` False), "rank" ("camera_tone"'s changes, and
 #: the network sees each channel as its rank among the crop's points in stage 2, the sampled frame's in stage 1:
-#: colour_ranks, the same whatever the camera's exposure, white balance, gamma or contrast) or "none" (no colour: the
-#: network sees geometry only, in training and at inference, whatever camera gives the frame).
+#: colour_ranks, the same whatever the camera's exposure, white balance, gamma or contrast), "grey_world" ("camera"'s
+#: changes, and the network sees the colours balanced by grey_world over the same points: the same whatever the
+#: camera's exposure and white balance) or "none" (no colour: the network sees geometry only, in training and at
+#: inference, whatever camera gives the frame).
 COLOUR_MODES = ("light", *CAMERA_MODES, "none")
 
 #: COLOUR_MODES as a config error names them.
@@ -104,9 +120,9 @@ NORMALISATION: dict[str, float] = {"rgb_mean": 0.5, "rgb_std": 0.25}
 def input_normalisation(colour: str) -> dict:
     """The input normalisation a stage trained with colour mode ``colour`` (:data:`COLOUR_MODES`) keeps in its
     checkpoint: :data:`NORMALISATION`, plus ``"colour": "none"`` for a network without colour input (its colour
-    channels are zero in training and at inference) or ``"colour": "rank"`` for one that sees colour ranks
-    (:func:`colour_ranks`)."""
-    return {**NORMALISATION, "colour": colour} if colour in ("none", "rank") else dict(NORMALISATION)
+    channels are zero in training and at inference), ``"colour": "rank"`` for one that sees colour ranks
+    (:func:`colour_ranks`) or ``"colour": "grey_world"`` for one that sees balanced colours (:func:`grey_world`)."""
+    return {**NORMALISATION, "colour": colour} if colour in ("none", "rank", "grey_world") else dict(NORMALISATION)
 
 #: Augmentation strengths (metres, radians, colour units in [0, 1]).
 JITTER_SIGMA = 0.002
@@ -142,8 +158,9 @@ def augment(features: np.ndarray, control_points: np.ndarray, rng: np.random.Gen
     """Light augmentation: a small roll about the camera axis (points, normals and labels alike), xyz jitter,
     and a colour change: ``colour`` "light" is a brightness gain of +-15 % and colour noise, "camera" the whole
     frame's colours as another camera would give them (:func:`detector.data.augment.camera_colour`: exposure, white
-    balance, gamma, sometimes grey or none; "camera_tone", "camera_rgb" and "rank" its variants, :data:`CAMERA_MODES`;
-    "rank"'s network input is :func:`colour_ranks` of the changed colours, by :func:`normalise_features`),
+    balance, gamma, sometimes grey or none; "camera_tone", "camera_rgb", "rank" and "grey_world" its variants,
+    :data:`CAMERA_MODES`; the network input of "rank" and "grey_world" is :func:`colour_ranks` or :func:`grey_world`
+    of the changed colours, by :func:`normalise_features`),
     "none" leaves colour as it is (the network does not see it).
 
     features: (N, 9) float32, colour in [0, 1]; control_points: (N, 9, 3) float32 metres (zeros = background).

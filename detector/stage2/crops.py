@@ -37,11 +37,12 @@ class CropConfig:
     (:func:`detector.data.augment.camera_colour`: exposure, white balance, gamma, sometimes grey or no colour at
     all, as real cameras differ from the renderer), "camera_tone" ("camera" plus contrast and saturation gains),
     "camera_rgb" ("camera" never grey or colourless), "rank" ("camera_tone"'s changes, the network seeing each
-    channel's rank among the crop's points: :func:`detector.data.augment.colour_ranks`) or "none" (no colour input);
-    neighbour: augmentation puts, with this chance, a copy of the instance's own points beside it as background
-    (:func:`add_neighbour`), at a lateral distance of ``neighbour_offset`` (min, max) diameters between the centres:
-    scenes such as LC-HF hold several instances of one object side by side, and a crop around one of them must not
-    take its neighbour for it.
+    channel's rank among the crop's points: :func:`detector.data.augment.colour_ranks`), "grey_world" ("camera"'s
+    changes, the colours balanced over the crop's points: :func:`detector.data.augment.grey_world`) or "none" (no
+    colour input); neighbour: augmentation puts, with this chance, a copy of the instance's own points beside it as
+    background (:func:`add_neighbour`), at a lateral distance of ``neighbour_offset`` (min, max) diameters between
+    the centres: scenes such as LC-HF hold several instances of one object side by side, and a crop around one of
+    them must not take its neighbour for it.
     """
 
     radius: float = 0.7

@@ -65,12 +65,12 @@ SINGLE=(); [ -f reports/lm_test_tau0/report.json ] && SINGLE=(--single-shot repo
 .venv/bin/python examples/linemod/tables.py reports/lm8_test/report.json reports/lm8_lchf/report.json "${SINGLE[@]}"
 
 # 7. stage 1's colour changes (RESULTS.md, "Stage 1 with camera-like colour changes"): stage 1 alone trained
-#    again with `camera` (seeds 0 and 1), `camera_rgb` and `rank`, each beside runs/lm8's stage 2 (a run folder holding a copy
-#    of that finished stage 2 and its own two_stage.yaml, resumed: a finished stage is not trained again), scored on
-#    both test captures and under other cameras' colours (bench/probe_colour.py on the validation capture, as for
-#    runs/lm8 itself); about 20 minutes each. Only with STAGE1_COLOUR=1.
+#    again with `camera` (seeds 0 and 1), `camera_rgb`, `rank` and `grey_world`, each beside runs/lm8's stage 2 (a run
+#    folder holding a copy of that finished stage 2 and its own two_stage.yaml, resumed: a finished stage is not
+#    trained again), scored on both test captures and under other cameras' colours (bench/probe_colour.py on the
+#    validation captures, as for runs/lm8 itself); about 20 minutes each. Only with STAGE1_COLOUR=1.
 if [ "${STAGE1_COLOUR:-0}" = 1 ]; then
-  for variant in camera:0 camera:1 camera_rgb:0 rank:0; do
+  for variant in camera:0 camera:1 camera_rgb:0 rank:0 grey_world:0; do
     mode=${variant%%:*}; seed=${variant#*:}; r="runs/lm8-s1-$mode-$seed"
     if [ ! -f "$r/model.pt" ]; then
       [ -d "$r/stage2" ] || { mkdir -p "$r" && cp -r runs/lm8/stage2 "$r/"; }
@@ -81,8 +81,16 @@ if [ "${STAGE1_COLOUR:-0}" = 1 ]; then
     [ -f "reports/$n-test/report.json" ] || $D eval "$r/model.pt" "$OUT/lm_test.h5" --out "reports/$n-test" --icp --quiet
     [ -f "reports/$n-lchf/report.json" ] || $D eval "$r/model.pt" "$OUT/lchf_test.h5" --out "reports/$n-lchf" --icp --quiet
   done
-  for r in runs/lm8 runs/lm8-s1-camera-0 runs/lm8-s1-camera-1 runs/lm8-s1-camera_rgb-0 runs/lm8-s1-rank-0; do
+  for r in runs/lm8 runs/lm8-s1-camera-0 runs/lm8-s1-camera-1 runs/lm8-s1-camera_rgb-0 runs/lm8-s1-rank-0 \
+           runs/lm8-s1-grey_world-0; do
     echo "$r"
     .venv/bin/python bench/probe_colour.py "$r/model.pt" "$OUT/lm_val.h5" --change none darker brighter warm gamma grey
+  done
+  for r in runs/lm8 runs/lm8-s1-camera-0 runs/lm8-s1-grey_world-0; do  # the LC-HF-style validation capture
+    echo "$r"
+    .venv/bin/python bench/probe_colour.py "$r/model.pt" "$OUT/lchf_val.h5" --change none darker warm
+  done
+  for r in runs/lm8-s1-rank-0 runs/lm8-s1-grey_world-0; do  # the colour changed in stage 1 only
+    .venv/bin/python bench/probe_colour.py "$r/model.pt" "$OUT/lm_val.h5" --change none darker warm --stage stage1
   done
 fi
