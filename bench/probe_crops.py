@@ -24,10 +24,12 @@ from detector.stage2.poser import PoserConfig, crop_predictions, pose_from_crop
 from detector.training.checkpoint_file import read_checkpoint
 
 
-def painted(frame, models_dir: str, cache: dict) -> np.ndarray:
+def painted(frame, models_dir: str, cache: dict) -> tuple[np.ndarray, np.ndarray]:
     """A copy of frame.features (N,9) whose points within 4 mm of an annotated object's model surface at its true pose
-    take the colour of the model's nearest vertex (in [0, 1]). models_dir: BOP models folder (mm, vertex colours)."""
+    take the colour of the model's nearest vertex (in [0, 1]), and which points those are ((N,) bool).
+    models_dir: BOP models folder (mm, vertex colours)."""
     out = np.array(frame.features, dtype=np.float32, copy=True)
+    on_model = np.zeros(len(out), bool)
     xyz = np.asarray(out[:, :3], np.float64)
     inst = frame.instances
     for g in range(len(inst)):
@@ -43,7 +45,8 @@ def painted(frame, models_dir: str, cache: dict) -> np.ndarray:
         d, j = cKDTree(v @ np.asarray(inst.R[g]).T + np.asarray(inst.t[g])).query(xyz)
         near = d < 0.004
         out[near, 3:6] = col[j[near]]
-    return out
+        on_model |= near
+    return out, on_model
 
 
 def main() -> None:
@@ -72,7 +75,7 @@ def main() -> None:
         for i in range(min(a.frames, lf.num_frames)):
             f = lf.frame(i)
             inst = f.instances
-            features = f.features if a.paint_models is None else painted(f, a.paint_models, colours)
+            features = f.features if a.paint_models is None else painted(f, a.paint_models, colours)[0]
             for g in range(len(inst)):
                 oid = int(inst.obj_id[g])
                 if oid not in ids or inst.visib_fract[g] < 0.1:
