@@ -14,7 +14,7 @@ Older run folders name the stages ``detect/`` and ``pose/`` and their ``two_stag
 from __future__ import annotations
 
 import os
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
 import yaml
@@ -102,7 +102,8 @@ def train_two_stage(cfg: TwoStageConfig, train_path: str | Path, out_dir: str | 
 
     A stage whose run is complete is not trained again; one that was interrupted is resumed (with ``resume``).
     Resuming checks both stages' settings first: only those that do not change the result (e.g. ``stage2.cache_mb``,
-    the devices, more steps) may differ from the run's. val_path: a validation label file for stage 1 (its
+    the devices, more steps) may differ from the run's, and a setting the run's ``two_stage.yaml`` does not name
+    keeps the run's own value (:func:`run_settings`). val_path: a validation label file for stage 1 (its
     ``metrics.csv`` gets val_loss / val_acc every ``stage1.val_every`` steps, and ``stage1/best.pt`` keeps the
     weights of the lowest); the model file takes the last weights of each stage. stage1_path: a label file of the
     same objects for stage 1 alone (default: train_path for both), e.g. a capture without distractors while stage 2
@@ -118,7 +119,12 @@ def train_two_stage(cfg: TwoStageConfig, train_path: str | Path, out_dir: str | 
     d1, d2 = stage_dirs(out_dir)
     done1, saved1 = _progress(d1 / "last.pt", "stage1")
     done2, saved2 = _progress(d2 / "last.pt", "stage2")
-    if resume:  # before anything runs: a stage that is complete is not trained again, so its settings are checked here
+    if resume:  # a run keeps the settings it started with where its two_stage.yaml and --set name none
+        cfg = replace(cfg, stage1=run_settings(saved1, s1, cfg.stage1, RESUME_FREE_KEYS),
+                      stage2=run_settings(saved_settings(saved2) if saved2 is not None else None, s2, cfg.stage2,
+                                          STAGE2_RESUME_FREE_KEYS))
+        s1, s2, geometry, infer = cfg.resolved()
+        # before anything runs: a stage that is complete is not trained again, so its settings are checked here
         if saved1 is not None:
             check_resumable(saved1, s1, d1 / "last.pt", RESUME_FREE_KEYS)
         if saved2 is not None:
@@ -140,6 +146,37 @@ def train_two_stage(cfg: TwoStageConfig, train_path: str | Path, out_dir: str | 
         raise DetectorError(f"the stages learned different objects ({stage1['class_ids']} vs {part['class_ids']})")
     return save_two_stage(out_dir / "model.pt", stage1, {**part, "infer_config": infer},
                           {"geometry_config": geometry, "train_file": str(train_path)})
+
+
+def _leaves(d: dict, prefix: str = "") -> dict:
+    """``{"loss.w_conf": 5.0, ...}``: the dotted keys and values of a nested settings dict."""
+    out = {}
+    for k, v in d.items():
+        if isinstance(v, dict) and v:
+            out.update(_leaves(v, f"{prefix}{k}."))
+        else:
+            out[f"{prefix}{k}"] = v
+    return out
+
+
+def run_settings(saved: dict | None, now, given: dict, free: frozenset = frozenset()) -> dict:
+    """A stage's overrides for resuming its run: ``given`` (dotted keys from the run's two_stage.yaml and --set),
+    plus the run's own value (``saved``, the nested settings in its last.pt) of every setting that ``given`` does
+    not name and today's defaults (``now``, the resolved config) set otherwise. So a default changed since the run
+    started (stage 1's colour input became ``grey_world``) does not change or refuse the run; a setting named
+    differently from the run's is still refused by :func:`check_resumable`. The settings in ``free`` (those that do
+    not change the result: devices, workers, ...) follow today's defaults; keys the settings no longer have are left
+    to that check."""
+    if saved is None:
+        return dict(given)
+    current = _leaves(config_to_dict(now))
+
+    def named(key: str) -> bool:
+        return any(key == g or key.startswith(g + ".") or g.startswith(key + ".") for g in given)
+
+    kept = {k: v for k, v in _leaves(saved).items()
+            if k in current and current[k] != v and k.split(".")[0] not in free and not named(k)}
+    return {**kept, **given}
 
 
 def _check_same_objects(stage1_path: Path, train_path: Path, ids1, ids2) -> None:

@@ -665,6 +665,40 @@ def test_a_run_folder_with_the_older_names_resumes(labels, tmp_path):
     assert ck.stage2_net is not None and ck.geometry_config["tau"] == 0.3
 
 
+def test_a_run_started_under_older_defaults_resumes_with_its_own_settings(labels, tmp_path):
+    """A run folder whose two_stage.yaml does not name a setting whose default has changed since it started (stage
+    1's colour input was `light` before `grey_world`) resumes with the run's own value, for either stage, and its
+    two_stage.yaml then names it; a setting named differently from the run's is still refused."""
+    from detector.checkpoint import load_checkpoint
+    from detector.cli.app import app as det_app
+    from detector.training.checkpoint_file import read_checkpoint
+    from detector.two_stage import DEFAULTS
+
+    # values other than today's defaults: what the run's file leaves out had other defaults when it started
+    colour = "light" if DEFAULTS["stage1"].get("colour", "light") != "light" else "grey_world"
+    neighbour = 0.0 if DEFAULTS["stage2"].get("crop.neighbour", 0.0) != 0.0 else 0.5
+    run, out = CliRunner(), tmp_path / "run"
+    r = run.invoke(det_app, ["train", str(labels), "--out", str(out), *tiny_two_stage_args(2, 2), "--device", "cpu",
+                             "--set", f"stage1.colour={colour}", "--set", f"stage2.crop.neighbour={neighbour}"])
+    assert r.exit_code == 0, r.output
+    used = load_checkpoint(out / "model.pt").normalisation.get("colour", "light")
+    cfg = yaml.safe_load((out / "two_stage.yaml").read_text())
+    del cfg["stage1"]["colour"], cfg["stage2"]["crop.neighbour"]  # as a run's file reads when these were defaults
+    (out / "two_stage.yaml").write_text(yaml.safe_dump(cfg))
+    (out / "model.pt").unlink()
+    today = DEFAULTS["stage1"].get("colour", "light")
+    r = run.invoke(det_app, ["train", str(labels), "--out", str(out), "--resume", "--quiet",
+                             "--set", f"stage1.colour={today}"])
+    assert r.exit_code == 2 and f"cannot resume with colour='{today}'" in r.stderr, r.output
+    r = run.invoke(det_app, ["train", str(labels), "--out", str(out), "--resume", "--quiet", "--set", "stage2.steps=3"])
+    assert r.exit_code == 0, r.output
+    now = yaml.safe_load((out / "two_stage.yaml").read_text())
+    assert now["stage1"]["colour"] == colour and now["stage2"]["crop.neighbour"] == neighbour
+    part = read_checkpoint(out / "stage2" / "last.pt")["stage2"]
+    assert part["step"] == 3 and part["train_state"]["config"]["crop"]["neighbour"] == neighbour
+    assert load_checkpoint(out / "model.pt").normalisation.get("colour", "light") == used
+
+
 TINY_STAGE2 = {"steps": 40, "checkpoint_every": 5, "batch_frames": 2, "num_workers": 0, "warmup_steps": 2,
                "crop.num_points": 64, "net.width": 16, "net.edge_width": 16, "net.global_width": 32,
                "net.head_width": 32, "net.k": 8, "cache_mb": 64.0}
