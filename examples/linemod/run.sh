@@ -29,7 +29,8 @@ for s in lm_train lm_test lm_val lchf_test lm_val2 lchf_val; do
   [ -f "$OUT/$s.h5" ] || $A label "$OUT/$s" --out "$OUT/$s.h5" --quiet
 done
 
-# 3. the default two-stage model: stage 1 (objects and their centres), then stage 2 (pose in crops);
+# 3. the default two-stage model: stage 1 (objects and their centres; colour over its frame mean, `grey_world`), then
+#    stage 2 (pose in crops);
 #    runs/lm8/model.pt holds both (checkpoints/lm8.pt is this file); stage 2 keeps its weights every 1300 steps
 #    for the time-to-accuracy curve
 if [ -f runs/lm8/two_stage.yaml ] && [ ! -f runs/lm8/model.pt ]; then
@@ -64,13 +65,23 @@ fi
 SINGLE=(); [ -f reports/lm_test_tau0/report.json ] && SINGLE=(--single-shot reports/lm_test_tau0/report.json)
 .venv/bin/python examples/linemod/tables.py reports/lm8_test/report.json reports/lm8_lchf/report.json "${SINGLE[@]}"
 
-# 7. stage 1's colour changes (RESULTS.md, "Stage 1 with camera-like colour changes"): stage 1 alone trained
-#    again with `camera` (seeds 0 and 1), `camera_rgb`, `rank` and `grey_world`, each beside runs/lm8's stage 2 (a run
+# 6b. real frames that hold none of the LineMOD objects (the 10 ycbv_real frames and the TUM desk frame, in
+#     ../shared/data): every detection there is a false alarm (RESULTS.md)
+R=${REAL:-../shared/data}
+if [ -d "$R/ycbv_real/test/000000" ] && [ -d "$R/recordings/tum_desk" ]; then
+  .venv/bin/python bench/false_alarms.py runs/lm8/model.pt "$R"/ycbv_real/test/000000/0000{01..10}
+  .venv/bin/python bench/false_alarms.py runs/lm8/model.pt "$R/recordings/tum_desk/depth/000000.png" \
+    --K 525,525,319.5,239.5 --depth-scale 0.2 --rgb "$R/recordings/tum_desk/rgb/000000.png"
+fi
+
+# 7. stage 1's colour input (RESULTS.md, "Stage 1's colour input"): stage 1 alone trained again with `light` (the
+#    default before `grey_world`), `camera` (seeds 0 and 1), `camera_rgb`, `rank` and `grey_world` (seed 1; runs/lm8
+#    is seed 0), each beside runs/lm8's stage 2 (a run
 #    folder holding a copy of that finished stage 2 and its own two_stage.yaml, resumed: a finished stage is not
 #    trained again), scored on both test captures and under other cameras' colours (bench/probe_colour.py on the
 #    validation captures, as for runs/lm8 itself); about 20 minutes each. Only with STAGE1_COLOUR=1.
 if [ "${STAGE1_COLOUR:-0}" = 1 ]; then
-  for variant in camera:0 camera:1 camera_rgb:0 rank:0 grey_world:0; do
+  for variant in light:0 camera:0 camera:1 camera_rgb:0 rank:0 grey_world:1; do
     mode=${variant%%:*}; seed=${variant#*:}; r="runs/lm8-s1-$mode-$seed"
     if [ ! -f "$r/model.pt" ]; then
       [ -d "$r/stage2" ] || { mkdir -p "$r" && cp -r runs/lm8/stage2 "$r/"; }
@@ -81,16 +92,16 @@ if [ "${STAGE1_COLOUR:-0}" = 1 ]; then
     [ -f "reports/$n-test/report.json" ] || $D eval "$r/model.pt" "$OUT/lm_test.h5" --out "reports/$n-test" --icp --quiet
     [ -f "reports/$n-lchf/report.json" ] || $D eval "$r/model.pt" "$OUT/lchf_test.h5" --out "reports/$n-lchf" --icp --quiet
   done
-  for r in runs/lm8 runs/lm8-s1-camera-0 runs/lm8-s1-camera-1 runs/lm8-s1-camera_rgb-0 runs/lm8-s1-rank-0 \
-           runs/lm8-s1-grey_world-0; do
+  for r in runs/lm8 runs/lm8-s1-grey_world-1 runs/lm8-s1-light-0 runs/lm8-s1-camera-0 runs/lm8-s1-camera-1 \
+           runs/lm8-s1-camera_rgb-0 runs/lm8-s1-rank-0; do
     echo "$r"
     .venv/bin/python bench/probe_colour.py "$r/model.pt" "$OUT/lm_val.h5" --change none darker brighter warm gamma grey
   done
-  for r in runs/lm8 runs/lm8-s1-camera-0 runs/lm8-s1-grey_world-0; do  # the LC-HF-style validation capture
+  for r in runs/lm8 runs/lm8-s1-grey_world-1 runs/lm8-s1-light-0 runs/lm8-s1-camera-0; do  # the LC-HF-style one
     echo "$r"
     .venv/bin/python bench/probe_colour.py "$r/model.pt" "$OUT/lchf_val.h5" --change none darker warm
   done
-  for r in runs/lm8-s1-rank-0 runs/lm8-s1-grey_world-0; do  # the colour changed in stage 1 only
+  for r in runs/lm8 runs/lm8-s1-rank-0; do  # the colour changed in stage 1 only
     .venv/bin/python bench/probe_colour.py "$r/model.pt" "$OUT/lm_val.h5" --change none darker warm --stage stage1
   done
 fi
