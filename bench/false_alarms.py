@@ -2,7 +2,8 @@
 
 A real sensor's clutter, without a label file: each input is what `detector predict` takes (a BOP frame
 SPLIT_DIR/SCENE_ID/IM_ID, or a depth PNG with --K / --depth-scale / --rgb), run with the model's own settings
-(and ICP unless --no-icp). Prints one line per frame (the detections' names and scores) and the totals.
+(and ICP unless --no-icp) and its working volume (the points up to the depth its training frames had, unless
+--max-depth). Prints one line per frame (the detections' names and scores) and the totals.
 
 Usage: python bench/false_alarms.py CKPT INPUT [INPUT ...] [--K fx,fy,cx,cy --depth-scale S --rgb RGB.png]
        [--out DIR] [--no-icp]
@@ -23,7 +24,8 @@ from pathlib import Path
 import torch
 
 from detector.checkpoint import load_checkpoint
-from detector.infer import checkpoint_geometry_config, checkpoint_objects, checkpoint_poser
+from detector.errors import DetectorError
+from detector.infer import checkpoint_geometry_config, checkpoint_max_depth, checkpoint_objects, checkpoint_poser
 from detector.predict import load_input, predict
 from detector.stage1.predictor import network_predictor
 
@@ -37,6 +39,8 @@ def main() -> None:
     ap.add_argument("--rgb", type=Path, default=None, help="colour image of a (single) depth PNG input")
     ap.add_argument("--out", type=Path, default=None, help="keep each frame's poses.json and poses.png here")
     ap.add_argument("--no-icp", action="store_true")
+    ap.add_argument("--max-depth", type=float, default=None,
+                    help="metres along z (default: the model's training volume, as detector predict)")
     a = ap.parse_args()
     torch.set_num_threads(2)
     ckpt = load_checkpoint(a.ckpt, "cpu")
@@ -44,16 +48,22 @@ def main() -> None:
     cfg = checkpoint_geometry_config(ckpt, None, not a.no_icp, None)
     predictor = network_predictor(ckpt, 0)
     poser = checkpoint_poser(ckpt, objects, "cpu", 0)
+    depth = checkpoint_max_depth(ckpt, a.max_depth)
     total = frames = 0
     with tempfile.TemporaryDirectory() as tmp:
         for spec in a.inputs:
-            inp = load_input(spec, a.K, a.depth_scale, None, a.rgb)
+            try:
+                inp = load_input(spec, a.K, a.depth_scale, None, a.rgb, max_depth=depth)
+            except DetectorError as e:  # e.g. nothing within the working volume: no frame to look at
+                print(f"{spec}: skipped: {e}", flush=True)
+                continue
             out = (a.out if a.out is not None else Path(tmp)) / re.sub(r"[^A-Za-z0-9_.-]+", "_", spec.strip("./"))
-            res = predict(predictor, inp, objects, out, cfg, names, poser)
+            res = predict(predictor, inp, objects, out, cfg, names, poser, depth)
             dets = res["detections"]
             total, frames = total + len(dets), frames + 1
             print(f"{spec}: {len(dets)} " + " ".join(f"{d['name']}:{d['score']:.2f}" for d in dets), flush=True)
-    print(f"{total} detections in {frames} frames ({total / max(frames, 1):.2f} a frame), ICP {not a.no_icp}")
+    print(f"{total} detections in {frames} frames ({total / max(frames, 1):.2f} a frame), ICP {not a.no_icp}, "
+          f"points up to {depth if depth is not None else 'any'} m")
 
 
 if __name__ == "__main__":

@@ -70,6 +70,19 @@ def estimate(preds: Predictions, objects: ObjectInfo, cfg: GeometryConfig, timin
             [d for d in refined if d.score >= cfg.min_score] if refined is not None else None)
 
 
+def checkpoint_max_depth(ckpt, given: float | None = None) -> float | None:
+    """The working volume a frame's points are taken from, metres along z: ``given`` (``--max-depth``), else the
+    one the model's stage 1 was trained in (its label file's ``max_depth``), else None (every point). A real frame's
+    far background (walls, a room) was never in the training frames: beyond that volume it would draw points from
+    the objects and look like nothing the network saw."""
+    if given is not None:
+        if not 0 < given <= 50:
+            raise DetectorError(f"--max-depth is metres along z and must be in (0, 50], got {given}")
+        return float(given)
+    depth = ckpt.extra.get("max_depth")
+    return float(depth) if depth else None
+
+
 def checkpoint_objects(ckpt) -> tuple[ObjectInfo, dict[int, str]]:
     """The geometry's object info and names of a checkpoint's object table."""
     o = ckpt.objects

@@ -51,7 +51,8 @@ def depth_features(depth: np.ndarray, K: np.ndarray, rgb: np.ndarray | None, max
     """
     features = frame_points(depth, K, rgb, max_points, 0.0, np.random.default_rng(seed), max_depth).features
     if len(features) == 0:
-        raise DetectorError("the depth image has no valid pixels")
+        raise DetectorError("the depth image has no valid pixels"
+                            + (f" within {max_depth:g} m (--max-depth)" if max_depth is not None else ""))
     return features
 
 
@@ -100,9 +101,9 @@ def view_camera(xyz: np.ndarray, size: tuple[int, int] = PLY_VIEW) -> np.ndarray
     return np.array([[f, 0, w / 2], [0, f, h / 2], [0, 0, 1]], np.float64)
 
 
-def load_ply(path: Path, max_points: int = MAX_POINTS, seed: int = 0) -> PointInput:
+def load_ply(path: Path, max_points: int = MAX_POINTS, seed: int = 0, max_depth: float | None = None) -> PointInput:
     """A PLY point cloud in camera coordinates, metres (OpenCV axes); colours and normals when present,
-    else normals estimated (open3d) and turned toward the camera."""
+    else normals estimated (open3d) and turned toward the camera. max_depth: keep points with 0 < z <= it."""
     # lazy: open3d loads in about a second; only PLY input needs it
     import open3d as o3d
 
@@ -118,6 +119,11 @@ def load_ply(path: Path, max_points: int = MAX_POINTS, seed: int = 0) -> PointIn
         pc.orient_normals_towards_camera_location(np.zeros(3))
     normals = np.asarray(pc.normals)
     colour = np.asarray(pc.colors) if pc.has_colors() else np.zeros_like(xyz)
+    if max_depth is not None:
+        near = (xyz[:, 2] > 0) & (xyz[:, 2] <= max_depth)
+        if not near.any():
+            raise DetectorError(f"{path}: no point within {max_depth:g} m (--max-depth)")
+        xyz, normals, colour = xyz[near], normals[near], colour[near]
     keep = np.sort(np.random.default_rng(seed).choice(len(xyz), max_points, replace=False)) \
         if len(xyz) > max_points else np.arange(len(xyz))
     feats = np.concatenate([xyz, colour, normals], axis=1)[keep].astype(np.float32)
@@ -125,15 +131,17 @@ def load_ply(path: Path, max_points: int = MAX_POINTS, seed: int = 0) -> PointIn
 
 
 def load_input(spec: str, K: str | None = None, depth_scale: float | None = None, camera: Path | None = None,
-               rgb: Path | None = None, max_points: int = MAX_POINTS, seed: int = 0) -> PointInput:
+               rgb: Path | None = None, max_points: int = MAX_POINTS, seed: int = 0,
+               max_depth: float | None = None) -> PointInput:
     """The input named on the command line: ``*.ply``, a depth ``*.png`` (intrinsics from --K, --camera, the
     image's own camera in its BOP scene, or a camera.json found near it: :mod:`argen.bop`), or a BOP frame
-    ``SPLIT_DIR/SCENE_ID/IM_ID``."""
+    ``SPLIT_DIR/SCENE_ID/IM_ID``; its points within ``max_depth`` metres along z (None: all), as ``argen label``'s
+    ``--max-depth`` keeps them."""
     p = Path(spec)
     if p.suffix.lower() == ".ply":
         if not p.is_file():
             raise DetectorError(f"point cloud not found: {p}")
-        return load_ply(p, max_points, seed)
+        return load_ply(p, max_points, seed, max_depth)
     if p.suffix.lower() == ".png":
         if not p.is_file():
             raise DetectorError(f"depth image not found: {p}")
@@ -152,10 +160,11 @@ def load_input(spec: str, K: str | None = None, depth_scale: float | None = None
                 c = bop.load_camera(cam)
             Km, scale = c.K, (c.depth_scale if c.depth_scale is not None else 1.0)
         return load_depth_png(p, Km, depth_scale if depth_scale is not None else scale, rgb,
-                              max_points=max_points, seed=seed)
+                              max_points=max_points, seed=seed, max_depth=max_depth)
     parts = p.parts
     if len(parts) >= 3 and parts[-1].isdigit() and parts[-2].isdigit():
-        return load_bop_frame(Path(*parts[:-2]), int(parts[-2]), int(parts[-1]), max_points=max_points, seed=seed)
+        return load_bop_frame(Path(*parts[:-2]), int(parts[-2]), int(parts[-1]), max_points=max_points, seed=seed,
+                              max_depth=max_depth)
     raise DetectorError(f"cannot tell what {spec} is: give a .ply cloud, a depth .png or a BOP frame "
                         "SPLIT_DIR/SCENE_ID/IM_ID")
 
@@ -204,9 +213,10 @@ def detection_json(d: Detection, name: str) -> dict:
 
 
 def predict(predictor, inp: PointInput, objects: ObjectInfo, out_dir: Path, cfg: GeometryConfig | None = None,
-            names: dict[int, str] | None = None, poser=None) -> dict:
+            names: dict[int, str] | None = None, poser=None, max_depth: float | None = None) -> dict:
     """Run ``predictor`` (see :mod:`detector.infer`) and the geometry (with a two-stage model's ``poser``)
-    on ``inp``; write poses.json and poses.png into ``out_dir``. Returns the JSON content."""
+    on ``inp``; write poses.json and poses.png into ``out_dir``. Returns the JSON content. max_depth: the working
+    volume ``inp`` was read with (metres, None: all points), recorded in the JSON."""
     cfg = cfg or GeometryConfig()
     t0 = time.perf_counter()
     preds = predictor(SimpleNamespace(features=inp.features, scene_id=0, im_id=0))
@@ -216,7 +226,7 @@ def predict(predictor, inp: PointInput, objects: ObjectInfo, out_dir: Path, cfg:
     timings["total"] = time.perf_counter() - t0
     names = names or {}
     out = {"input": inp.name, "units": "metres; R, t and T_cam_model map model points into the camera frame",
-           "icp": bool(cfg.icp), "tau": cfg.tau, "K": np.asarray(inp.K).tolist(),
+           "icp": bool(cfg.icp), "tau": cfg.tau, "max_depth": max_depth, "K": np.asarray(inp.K).tolist(),
            "detections": [detection_json(d, names.get(d.obj_id, str(d.obj_id))) for d in final],
            "timing_ms": {k: 1000 * v for k, v in timings.items()}}
     out_dir = Path(out_dir)

@@ -570,6 +570,8 @@ def test_two_stage_train_resume_eval_predict(labels, tmp_path):
     ck = load_checkpoint(out / "model.pt")
     assert ck.stage2_net is not None and ck.geometry_config["centre_votes"] and ck.geometry_config["tau"] == tau
     assert ck.stage2["class_ids"] == ck.class_ids
+    with LabelFile(labels) as lf:  # the working volume its points came from, for predict
+        assert ck.extra["max_depth"] == pytest.approx(lf.attrs["max_depth"]) and ck.extra["max_depth"] > 0
     # a setting that changes the result is refused on resume, for either stage (stage 1 is complete: checked first)
     for key in ("stage1.lr=0.01", "stage2.crop.radius=0.8", "stage1.num_points=512"):
         r = run.invoke(det_app, ["train", str(labels), "--out", str(out), "--resume", "--quiet", "--set", key])
@@ -626,6 +628,7 @@ def test_two_stage_train_resume_eval_predict(labels, tmp_path):
     r = run.invoke(det_app, ["predict", str(out / "model.pt"), str(ds), "--out", str(tmp_path / "pred"), "--icp"])
     assert r.exit_code == 0, r.output
     assert (tmp_path / "pred" / "poses.png").is_file()
+    assert json.loads((tmp_path / "pred" / "poses.json").read_text())["max_depth"] == ck.extra["max_depth"]
     # a stage-2 run's own last.pt is not a model
     r = run.invoke(det_app, ["eval", str(out / "stage2" / "last.pt"), str(labels), "--out", str(rep)])
     assert r.exit_code == 2 and "model.pt" in r.stderr

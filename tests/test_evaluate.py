@@ -185,6 +185,16 @@ def test_predict_on_bop_frame_depth_png_and_ply(dataset, tmp_path):
     inp4 = load_input(str(depth_png))
     np.testing.assert_allclose(inp4.K, K)
     np.testing.assert_allclose(inp4.features[:, [0, 1, 2, 6, 7, 8]], inp.features[:, [0, 1, 2, 6, 7, 8]], atol=1e-6)
+    # ... and within a working volume, the points argen label keeps with that --max-depth
+    from argen.features import frame_points
+    from detector.predict import MAX_POINTS
+
+    near = float(np.median(inp.features[:, 2]))
+    inp5 = load_input(str(ds / "train_pbr" / "000000" / str(im_id)), max_depth=near)
+    want = frame_points(scene.read_depth(im_id), K, scene.read_rgb(im_id), MAX_POINTS, 0.0, np.random.default_rng(0),
+                        near).features
+    assert inp5.features[:, 2].max() <= near < inp.features[:, 2].max()
+    np.testing.assert_array_equal(inp5.features, want)
 
     # ... and as a PLY cloud (metres, camera frame), drawn over a splat of the cloud
     pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(inp.features[:, :3].astype(np.float64)))
@@ -196,6 +206,8 @@ def test_predict_on_bop_frame_depth_png_and_ply(dataset, tmp_path):
     np.testing.assert_allclose(np.sort(inp3.features[:, 2]), np.sort(inp.features[:, 2]), atol=1e-6)
     out3 = predict(predictor, inp3, objects, tmp_path / "ply")
     check_poses(out3, gts)
+    inp6 = load_input(str(tmp_path / "cloud.ply"), max_depth=near)
+    assert inp6.features[:, 2].max() <= near and len(inp6.features) == int((inp.features[:, 2] <= near).sum())
     import cv2
     img = cv2.imread(str(tmp_path / "ply" / "poses.png"))
     assert img.shape[:2] == (480, 640) and img.any()
@@ -280,6 +292,15 @@ def test_cli_eval_and_predict_with_a_random_network(random_checkpoint, dataset, 
 
     r = runner.invoke(app, ["predict", str(random_checkpoint), str(tmp_path / "missing.ply")])
     assert r.exit_code == 2 and "detector: error:" in r.output and len(r.output.strip().splitlines()) == 1
+    # the working volume: the model's own (this one records none: every point), or --max-depth in metres
+    assert out["max_depth"] is None
+    frame = str(ds / "train_pbr" / "000000" / str(im_id))
+    for value, words in (("0", ["--max-depth", "metres"]), ("800", ["--max-depth", "metres"]),
+                         ("0.01", ["no valid pixels within 0.01 m"])):
+        r = runner.invoke(app, ["predict", str(random_checkpoint), frame, "--out", str(tmp_path / "pred2"),
+                                "--max-depth", value])
+        assert_one_line_error(r, *words)
+    assert not (tmp_path / "pred2").exists()
 
 
 def assert_one_line_error(r, *words: str) -> None:

@@ -93,6 +93,9 @@ def register(app: typer.Typer) -> None:
                                                   help="Drop detections scoring less (default: the model's own)."),
         device: str = typer.Option("cpu", "--device", help="torch device."),
         seed: int = typer.Option(0, "--seed", help="Point sampling seed."),
+        max_depth: Optional[float] = typer.Option(None, "--max-depth",
+                                                  help="Use the points up to this depth, metres (default: the "
+                                                       "working volume the model was trained in, when it says)."),
         sets: list[str] = typer.Option([], "--set", help="A geometry setting of the model file, e.g. --set "
                                                          "geometry.depth_check=false (keys of "
                                                          "detector.geometry.types.GeometryConfig)."),
@@ -100,16 +103,18 @@ def register(app: typer.Typer) -> None:
         """Predict the poses in one frame: poses.json (metres) and poses.png (3D boxes)."""
         # lazy: torch and open3d load in seconds; `detector --help` and the other commands do not need them
         from detector.checkpoint import load_checkpoint
-        from detector.infer import checkpoint_geometry_config, checkpoint_objects, checkpoint_poser
+        from detector.infer import (checkpoint_geometry_config, checkpoint_max_depth, checkpoint_objects,
+                                    checkpoint_poser)
         from detector.predict import load_input, predict
         from detector.stage1.predictor import network_predictor
 
         ckpt = load_checkpoint(checkpoint, device)
         cfg = checkpoint_geometry_config(ckpt, tau, icp, min_score, sets)
-        inp = load_input(input, K=K, depth_scale=depth_scale, camera=camera, rgb=rgb, seed=seed)
+        depth = checkpoint_max_depth(ckpt, max_depth)
+        inp = load_input(input, K=K, depth_scale=depth_scale, camera=camera, rgb=rgb, seed=seed, max_depth=depth)
         objects, names = checkpoint_objects(ckpt)
         res = predict(network_predictor(ckpt, seed), inp, objects, out, cfg, names,
-                      poser=checkpoint_poser(ckpt, objects, device, seed))
+                      poser=checkpoint_poser(ckpt, objects, device, seed), max_depth=depth)
         for d in res["detections"]:
             typer.echo(f"{d['name']} (obj {d['obj_id']}): score {d['score']:.2f}, t = "
                        + " ".join(f"{v:.3f}" for v in d["t"]) + " m")

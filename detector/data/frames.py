@@ -43,7 +43,8 @@ def check_frame(frame, path: Path, i: int) -> None:
 
 class FrameSource(torch.utils.data.Dataset):
     """A label file's frames for a Dataset: opened lazily in each process (never pickled into workers), the
-    object table, the classes to learn (``class_ids``, sorted object ids) and the per-item generator."""
+    object table, the classes to learn (``class_ids``, sorted object ids), the working volume its points were taken
+    from (``max_depth``: metres along z, None when the file does not say) and the per-item generator."""
 
     def __init__(self, path: str | Path, seed: int = 0, class_ids: Sequence[int] | None = None,
                  augment: bool = False):
@@ -57,6 +58,8 @@ class FrameSource(torch.utils.data.Dataset):
             with argen_errors():
                 self.num_frames = int(lf.num_frames)
                 self.objects = object_table_dict(lf.objects)
+                depth = lf.attrs.get("max_depth")
+                self.max_depth = float(depth) if depth is not None and float(depth) > 0 else None
                 if self.num_frames == 0:
                     raise DetectorError(f"{self.path}: the label file has no frames")
                 check_frame(lf.frame(0), self.path, 0)  # one frame checks the shared datasets' shapes and dtypes

@@ -314,7 +314,8 @@ def _train(cfg: TrainConfig, train_path: str | Path, out_dir: str | Path, val_pa
             log = MetricsLog(out_dir / "metrics.csv", keep_until=start if resume else None, fields=METRIC_FIELDS)
 
         def save(path: Path, step: int) -> None:
-            extra = {"train_config": config_to_dict(cfg), "train_file": str(train_path), "val": val}
+            extra = {"train_config": config_to_dict(cfg), "train_file": str(train_path), "val": val,
+                     "max_depth": ds.max_depth}  # the working volume of its points: predict keeps to it
             train_state = {"optimizer": opt.state_dict(), "scheduler": sched.state_dict(), "rng": rng_state(device),
                            "data_position": step * cfg.batch_size, "config": config_to_dict(cfg),
                            "best_val_loss": best, "val": val, "total_steps": total}
