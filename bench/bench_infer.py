@@ -82,19 +82,25 @@ def pose_times(frames: list, objects, num_points: int) -> dict[str, float]:
 def two_stage_times(ck, frames: list, device: str, sets: list[str] | None = None) -> dict[str, float]:
     """A two-stage checkpoint end to end on real predictions: median seconds per stage and of the whole frame
     (sampling, network, voting, stage 2, ICP, depth check with the model's own geometry settings, ``sets`` over
-    them), and detections per frame."""
+    them), detections per frame and stage 2's crops per frame (the stage-1 detections and their other-class copies
+    it poses)."""
     from detector.infer import checkpoint_geometry_config, checkpoint_objects, checkpoint_poser, estimate
     from detector.stage1.predictor import network_predictor
 
     objects = checkpoint_objects(ck)[0]
     cfg = checkpoint_geometry_config(ck, None, True, sets=sets)
     pred, poser = network_predictor(ck, seed=0, device=device), checkpoint_poser(ck, objects, device)
-    runs, dets = [], []
+    runs, dets, crops = [], [], []
+
+    def counted(found, features, timings=None):
+        crops.append(len(found))
+        return poser(found, features, timings)
+
     for k, f in enumerate([frames[0], *frames]):  # the first is a warm-up
         t0 = time.perf_counter()
         p = pred(f)
         t = dict(p.timings)
-        d, r = estimate(p, objects, cfg, t, f.features[:, :3], poser, f.features)
+        d, r = estimate(p, objects, cfg, t, f.features[:, :3], counted, f.features)
         t["total"] = time.perf_counter() - t0
         if k:
             runs.append(t)
@@ -102,6 +108,7 @@ def two_stage_times(ck, frames: list, device: str, sets: list[str] | None = None
     out = {s: statistics.median(r.get(s, 0.0) for r in runs)
            for s in ("sampling", "network", "voting", "kabsch", "stage2", "icp", "depth_check", "total")}
     out["detections"] = statistics.mean(dets)
+    out["crops"] = statistics.mean(crops[1:])  # after the warm-up
     return out
 
 
@@ -155,10 +162,11 @@ def main() -> None:
         for name, ck in ckpts:
             if ck.stage2_net is not None:  # a two-stage model: its whole pipeline on its own predictions
                 t = two_stage_times(ck, frames, args.device, args.sets)
-                ms = {k: round(1000 * v, 1) for k, v in t.items() if k != "detections"}
+                ms = {k: round(1000 * v, 1) for k, v in t.items() if k not in ("detections", "crops")}
                 res = {"model": f"{name} (two-stage)", "device": args.device, "threads": torch.get_num_threads(),
                        "frame_points": int(statistics.mean(len(f.features) for f in frames)),
-                       "detections_per_frame": t["detections"], "ms": ms, "fps": round(1000 / ms["total"], 2)}
+                       "detections_per_frame": t["detections"], "stage2_crops_per_frame": t["crops"], "ms": ms,
+                       "fps": round(1000 / ms["total"], 2)}
                 results.append(res)
                 print(json.dumps(res), flush=True)
                 continue
