@@ -292,6 +292,15 @@ def test_cli_eval_and_predict_with_a_random_network(random_checkpoint, dataset, 
 
     r = runner.invoke(app, ["predict", str(random_checkpoint), str(tmp_path / "missing.ply")])
     assert r.exit_code == 2 and "detector: error:" in r.output and len(r.output.strip().splitlines()) == 1
+    # a depth PNG without its colour image: a model that sees colour says it will find little, and still predicts
+    cam = bop.load_scene(ds, "train_pbr", 0).cameras[im_id]
+    K = ",".join(str(v) for v in (cam.K[0, 0], cam.K[1, 1], cam.K[0, 2], cam.K[1, 2]))
+    r = runner.invoke(app, ["predict", str(random_checkpoint), str(bop.image_path(ds, "train_pbr", 0, im_id, "depth")),
+                            "--K", K, "--depth-scale", str(cam.depth_scale), "--out", str(tmp_path / "pred3")])
+    assert r.exit_code == 0 and "detector: warning:" in r.stderr and "--rgb" in r.stderr, r.output
+    assert (tmp_path / "pred3" / "poses.json").is_file()
+    assert "warning" not in runner.invoke(app, ["predict", str(random_checkpoint), str(ds / "train_pbr" / "000000" /
+                                                str(im_id)), "--out", str(tmp_path / "pred4")]).stderr
     # the working volume: the model's own (this one records none: every point), or --max-depth in metres
     assert out["max_depth"] is None
     frame = str(ds / "train_pbr" / "000000" / str(im_id))

@@ -112,6 +112,9 @@ def register(app: typer.Typer) -> None:
         cfg = checkpoint_geometry_config(ckpt, tau, icp, min_score, sets)
         depth = checkpoint_max_depth(ckpt, max_depth)
         inp = load_input(input, K=K, depth_scale=depth_scale, camera=camera, rgb=rgb, seed=seed, max_depth=depth)
+        if ckpt.normalisation.get("colour") != "none" and not inp.features[:, 3:6].any():
+            typer.echo(f"detector: warning: {checkpoint.name} sees colour and {input} has none (give the colour "
+                       "image with --rgb): it finds little without it (RESULTS.md)", err=True)
         objects, names = checkpoint_objects(ckpt)
         res = predict(network_predictor(ckpt, seed), inp, objects, out, cfg, names,
                       poser=checkpoint_poser(ckpt, objects, device, seed), max_depth=depth)
