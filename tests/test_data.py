@@ -308,7 +308,7 @@ def test_camera_colour_augmentation_changes_a_whole_frame_like_another_camera(fr
             ratios.append(rgb.mean() / feats[:, 3:6].mean())
     assert 0 < none < 10 and 0 < grey < 15  # some depth-only and grey frames, most in colour
     assert min(ratios) < 0.75 and max(ratios) > 1.25  # spans exposures x0.7 and x1.3 (light stays within 15 %)
-    modes = "light, camera, camera_tone, camera_rgb, rank, grey_world or none"
+    modes = "light, camera, camera_tone, camera_rgb, rank, grey_world, grey_world_rgb or none"
     with pytest.raises(DetectorError, match=f"colour must be {modes}"):
         make_config("cpu", {"colour": "sepia"})
 
@@ -331,6 +331,27 @@ def test_camera_rgb_is_camera_without_its_grey_and_colourless_frames(frames):
             differ += 1
             assert not cam.any() or np.allclose(cam, cam.mean(1, keepdims=True), atol=0.1)  # camera's grey or none
     assert 0 < differ < 20
+
+
+def test_grey_world_rgb_is_camera_rgb_balanced_as_grey_world(h5_path, frames):
+    """colour "grey_world_rgb": the colour changes are "camera_rgb"'s bit for bit (never grey or colourless), and the
+    network input is balanced as "grey_world"'s: its checkpoint normalisation is that mode's, so inference needs no
+    new case; a dataset item is the grey-world balance of "camera_rgb"'s item."""
+    from detector.data.augment import grey_world
+
+    feats, sem, inst, cps = frames[1]
+    for seed in range(20):
+        a = augment(feats, cps, np.random.default_rng(seed), colour="camera_rgb")
+        b = augment(feats, cps, np.random.default_rng(seed), colour="grey_world_rgb")
+        np.testing.assert_array_equal(a[0], b[0])
+        np.testing.assert_array_equal(a[1], b[1])
+    assert input_normalisation("grey_world_rgb") == input_normalisation("grey_world") != NORMALISATION
+    rgb_item, gw_item = (PointDataset(h5_path, small_model_config(), NUM_POINTS, augment=True, seed=4, colour=c)[(1, 2)]
+                         for c in ("camera_rgb", "grey_world_rgb"))
+    assert torch.equal(rgb_item["features"][:, [0, 1, 2, 6, 7, 8]], gw_item["features"][:, [0, 1, 2, 6, 7, 8]])
+    rgb = rgb_item["features"][:, 3:6].numpy() * NORMALISATION["rgb_std"] + NORMALISATION["rgb_mean"]
+    balanced = gw_item["features"][:, 3:6].numpy() * NORMALISATION["rgb_std"] + NORMALISATION["rgb_mean"]
+    np.testing.assert_allclose(balanced, grey_world(rgb), atol=1e-5)
 
 
 def items_of_two_colour_modes(h5_path, base: str, mode: str):

@@ -51,7 +51,11 @@ def colour_ranks(rgb: np.ndarray) -> np.ndarray:
 #: and colourless draws (``grey``).
 CAMERA_MODES = {"camera": {"tone": False, "grey": True}, "camera_tone": {"tone": True, "grey": True},
                 "camera_rgb": {"tone": False, "grey": False}, "rank": {"tone": True, "grey": True},
-                "grey_world": {"tone": False, "grey": True}}
+                "grey_world": {"tone": False, "grey": True}, "grey_world_rgb": {"tone": False, "grey": False}}
+
+#: The modes whose network sees the colours changed before normalising, and how (the checkpoint's
+#: ``normalisation["colour"]``): colour ranks, grey-world balance, or none at all.
+INPUT_COLOUR = {"none": "none", "rank": "rank", "grey_world": "grey_world", "grey_world_rgb": "grey_world"}
 
 #: The colour input of both stages' training: "light" (colour with a small gain and noise), "camera" (colour changed as
 #: another camera would give it: camera_colour), "camera_tone" ("camera" plus the camera's tone curve: contrast and
@@ -60,8 +64,9 @@ CAMERA_MODES = {"camera": {"tone": False, "grey": True}, "camera_tone": {"tone":
 #: the network sees each channel as its rank among the crop's points in stage 2, the sampled frame's in stage 1:
 #: colour_ranks, the same whatever the camera's exposure, white balance, gamma or contrast), "grey_world" ("camera"'s
 #: changes, and the network sees the colours balanced by grey_world over the same points: the same whatever the
-#: camera's exposure and white balance) or "none" (no colour: the network sees geometry only, in training and at
-#: inference, whatever camera gives the frame).
+#: camera's exposure and white balance), "grey_world_rgb" ("grey_world" without the grey and colourless draws, as
+#: "camera_rgb") or "none" (no colour: the network sees geometry only, in training and at inference, whatever
+#: camera gives the frame).
 COLOUR_MODES = ("light", *CAMERA_MODES, "none")
 
 #: COLOUR_MODES as a config error names them.
@@ -121,8 +126,9 @@ def input_normalisation(colour: str) -> dict:
     """The input normalisation a stage trained with colour mode ``colour`` (:data:`COLOUR_MODES`) keeps in its
     checkpoint: :data:`NORMALISATION`, plus ``"colour": "none"`` for a network without colour input (its colour
     channels are zero in training and at inference), ``"colour": "rank"`` for one that sees colour ranks
-    (:func:`colour_ranks`) or ``"colour": "grey_world"`` for one that sees balanced colours (:func:`grey_world`)."""
-    return {**NORMALISATION, "colour": colour} if colour in ("none", "rank", "grey_world") else dict(NORMALISATION)
+    (:func:`colour_ranks`) or ``"colour": "grey_world"`` for one that sees balanced colours (:func:`grey_world`;
+    modes ``grey_world`` and ``grey_world_rgb``): :data:`INPUT_COLOUR`."""
+    return {**NORMALISATION, "colour": INPUT_COLOUR[colour]} if colour in INPUT_COLOUR else dict(NORMALISATION)
 
 #: Augmentation strengths (metres, radians, colour units in [0, 1]).
 JITTER_SIGMA = 0.002

@@ -83,13 +83,13 @@ fi
 $D eval runs/lm8/model.pt "$OUT/lm_test_all.h5" --out reports/lm8_test_all --icp --quiet
 
 # 7. stage 1's colour input (RESULTS.md, "Stage 1's colour input"): stage 1 alone trained again with `light` (the
-#    default before `grey_world`), `camera` (seeds 0 and 1), `camera_rgb`, `rank` and `grey_world` (seed 1; runs/lm8
-#    is seed 0), each beside runs/lm8's stage 2 (a run
+#    default before `grey_world`), `camera` (seeds 0 and 1), `camera_rgb`, `rank`, `grey_world` (seed 1; runs/lm8
+#    is seed 0) and `grey_world_rgb`, each beside runs/lm8's stage 2 (a run
 #    folder holding a copy of that finished stage 2 and its own two_stage.yaml, resumed: a finished stage is not
 #    trained again), scored on both test captures and under other cameras' colours (bench/probe_colour.py on the
 #    validation captures, as for runs/lm8 itself); about 20 minutes each. Only with STAGE1_COLOUR=1.
 if [ "${STAGE1_COLOUR:-0}" = 1 ]; then
-  for variant in light:0 camera:0 camera:1 camera_rgb:0 rank:0 grey_world:1; do
+  for variant in light:0 camera:0 camera:1 camera_rgb:0 rank:0 grey_world:1 grey_world_rgb:0; do
     mode=${variant%%:*}; seed=${variant#*:}; r="runs/lm8-s1-$mode-$seed"
     if [ ! -f "$r/model.pt" ]; then
       [ -d "$r/stage2" ] || { mkdir -p "$r" && cp -r runs/lm8/stage2 "$r/"; }
@@ -100,12 +100,14 @@ if [ "${STAGE1_COLOUR:-0}" = 1 ]; then
     [ -f "reports/$n-test/report.json" ] || $D eval "$r/model.pt" "$OUT/lm_test.h5" --out "reports/$n-test" --icp --quiet
     [ -f "reports/$n-lchf/report.json" ] || $D eval "$r/model.pt" "$OUT/lchf_test.h5" --out "reports/$n-lchf" --icp --quiet
   done
-  for r in runs/lm8 runs/lm8-s1-grey_world-1 runs/lm8-s1-light-0 runs/lm8-s1-camera-0 runs/lm8-s1-camera-1 \
-           runs/lm8-s1-camera_rgb-0 runs/lm8-s1-rank-0; do
+  for r in runs/lm8 runs/lm8-s1-grey_world-1 runs/lm8-s1-grey_world_rgb-0 runs/lm8-s1-light-0 runs/lm8-s1-camera-0 \
+           runs/lm8-s1-camera-1 runs/lm8-s1-camera_rgb-0 runs/lm8-s1-rank-0; do
     echo "$r"
-    .venv/bin/python bench/probe_colour.py "$r/model.pt" "$OUT/lm_val.h5" --change none darker brighter warm gamma grey
+    .venv/bin/python bench/probe_colour.py "$r/model.pt" "$OUT/lm_val.h5" --change none darker brighter warm gamma grey \
+      zeros
   done
-  for r in runs/lm8 runs/lm8-s1-grey_world-1 runs/lm8-s1-light-0 runs/lm8-s1-camera-0; do  # the LC-HF-style one
+  for r in runs/lm8 runs/lm8-s1-grey_world-1 runs/lm8-s1-grey_world_rgb-0 runs/lm8-s1-light-0 \
+           runs/lm8-s1-camera-0; do  # the LC-HF-style validation capture
     echo "$r"
     .venv/bin/python bench/probe_colour.py "$r/model.pt" "$OUT/lchf_val.h5" --change none darker warm
   done
