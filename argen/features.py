@@ -15,6 +15,8 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from argen.errors import ArgenError
+
 NORMAL_STEP = 2  # pixels between a point and the neighbours its tangents use
 JUMP_REL = 0.03  # a neighbour whose depth differs by more than this fraction of the depth is across an edge
 #: The 12 edges of a box between its 8 control-point corners, which come in ``itertools.product((x0, x1), (y0, y1),
@@ -114,6 +116,16 @@ class FramePoints:
     rows: np.ndarray
     cols: np.ndarray
     flat: np.ndarray
+
+
+def check_max_depth(max_depth: float) -> float:
+    """A working volume's depth (metres along z, :func:`frame_points`' ``max_depth``), checked: positive, and at
+    most 50 (more is millimetres given as metres). Returns it as a float; ArgenError otherwise."""
+    if not max_depth > 0:
+        raise ArgenError(f"--max-depth must be positive (metres), got {max_depth}")
+    if max_depth > 50:
+        raise ArgenError(f"--max-depth is metres: {max_depth} is too far (did you give millimetres?)")
+    return float(max_depth)
 
 
 def frame_points(depth: np.ndarray, K: np.ndarray, rgb: np.ndarray | None, max_points: int, voxel: float,

@@ -54,7 +54,7 @@ from tqdm import tqdm
 from argen import __version__, bop
 from argen.config import PIXEL_CENTRES, simulation_K
 from argen.errors import ArgenError
-from argen.features import frame_points
+from argen.features import check_max_depth, frame_points
 from argen.fileio import read_json, remove_stray_temps, write_json
 from argen.h5 import FrameLabels, InstanceTable, LabelFile, LabelWriter, ObjectTable, point_control_points
 from argen.models.objects import ObjectModel, load_models
@@ -93,10 +93,7 @@ class LabelConfig:
             raise ArgenError(f"pixel_centres must be {' or '.join(PIXEL_CENTRES)}, got '{self.pixel_centres}'")
         if self.max_points < 1:
             raise ArgenError(f"--max-points must be at least 1, got {self.max_points}")
-        if not self.max_depth > 0:
-            raise ArgenError(f"--max-depth must be positive (metres), got {self.max_depth}")
-        if self.max_depth > 50:
-            raise ArgenError(f"--max-depth is metres: {self.max_depth} is too far (did you give millimetres?)")
+        check_max_depth(self.max_depth)
         if not (0 <= self.voxel < 0.5):
             raise ArgenError(f"--voxel must be in [0, 0.5) metres, got {self.voxel}")
         if not self.visib_tolerance > 0:

@@ -15,8 +15,9 @@ from dataclasses import replace
 
 import numpy as np
 
+from argen.features import check_max_depth
 from detector.config import apply_set_options, parse_set_options
-from detector.errors import DetectorError
+from detector.errors import DetectorError, argen_errors
 from detector.geometry.icp import refine
 from detector.geometry.types import Detection, GeometryConfig, ObjectInfo
 from detector.geometry.verify import depth_checked, range_image
@@ -76,9 +77,8 @@ def checkpoint_max_depth(ckpt, given: float | None = None) -> float | None:
     far background (walls, a room) was never in the training frames: beyond that volume it would draw points from
     the objects and look like nothing the network saw."""
     if given is not None:
-        if not 0 < given <= 50:
-            raise DetectorError(f"--max-depth is metres along z and must be in (0, 50], got {given}")
-        return float(given)
+        with argen_errors():
+            return check_max_depth(given)
     depth = ckpt.extra.get("max_depth")
     return float(depth) if depth else None
 
