@@ -65,6 +65,11 @@ class ObjectTable:
     ids: (M,) int32; names: M str; diameters: (M,) float32; symmetric: (M,) bool;
     corners: (M,8,3) float32; control_points: (M,9,3) float32 (corners then centre);
     model_points: (M,P,3) float32 surface sample; sym_transforms: per object (S_m,4,4) float32, identity first.
+    Optional (empty lists: none for any object, as in files written before they existed): shape_symmetries: per
+    object (T_m,4,4) float32, the turns that map its shape onto itself but that its texture breaks
+    (:func:`argen.models.texture.shape_symmetries`); texture_points: per object (N_m,3) float32 surface sample and
+    texture_colours: per object (N_m,3) uint8 RGB its colours there (N_m = 0: the object has no such turns, or no
+    print to tell them apart).
     """
 
     ids: np.ndarray
@@ -75,6 +80,9 @@ class ObjectTable:
     control_points: np.ndarray
     model_points: np.ndarray
     sym_transforms: list[np.ndarray]
+    shape_symmetries: list[np.ndarray] = field(default_factory=list)
+    texture_points: list[np.ndarray] = field(default_factory=list)
+    texture_colours: list[np.ndarray] = field(default_factory=list)
 
     def index(self, obj_id: int) -> int:
         """Row of ``obj_id`` in the table; ArgenError when the file has no such object."""
@@ -149,6 +157,23 @@ def point_control_points(instance_cps: np.ndarray, instance: np.ndarray) -> np.n
 # ---------------------------------------------------------------------------------------- reader
 
 
+def _texture_tables(o, n: int, path) -> dict:
+    """The object group's optional shape symmetries and texture samples (see :class:`ObjectTable`) as its keyword
+    arguments; {} when the file has none."""
+    if "shape_sym" not in o:
+        return {}
+    out = {}
+    for key, name, dtype, shape in (("shape_symmetries", "shape_sym", np.float32, (4, 4)),
+                                    ("texture_points", "texture_points", np.float32, (3,)),
+                                    ("texture_colours", "texture_colours", np.uint8, (3,))):
+        off = o[("shape_sym" if key == "shape_symmetries" else "texture") + "_offsets"][()].astype(np.int64)
+        data = o[name][()].astype(dtype).reshape(-1, *shape)
+        if len(off) != n + 1 or off[-1] != len(data) or np.any(np.diff(off) < 0):
+            raise ArgenError(f"label file {path} is inconsistent: objects/{name} does not match its offsets")
+        out[key] = [data[off[m]:off[m + 1]] for m in range(n)]
+    return out
+
+
 def _text(v) -> str:
     return v.decode() if isinstance(v, bytes) else str(v)
 
@@ -221,6 +246,7 @@ class LabelFile:
             control_points=o["control_points"][()].astype(np.float32),
             model_points=o["model_points"][()].astype(np.float32),
             sym_transforms=[sym[sym_off[m]:sym_off[m + 1]] for m in range(len(ids))],
+            **_texture_tables(o, len(ids), self.path),
         )
 
     def __len__(self) -> int:
@@ -329,6 +355,18 @@ class LabelWriter:
         sym = [np.asarray(s, np.float32).reshape(-1, 4, 4) for s in o.sym_transforms]
         self._dataset("objects/sym_offsets", np.r_[0, np.cumsum([len(s) for s in sym])].astype(np.int64))
         self._dataset("objects/sym_transforms", np.concatenate(sym) if sym else np.zeros((0, 4, 4), np.float32))
+        if o.shape_symmetries:
+            self._ragged("objects/shape_sym", [np.asarray(s, np.float32).reshape(-1, 4, 4) for s in o.shape_symmetries])
+            self._ragged("objects/texture", [np.asarray(p, np.float32).reshape(-1, 3) for p in o.texture_points],
+                         "points")
+            self._ragged("objects/texture", [np.asarray(c, np.uint8).reshape(-1, 3) for c in o.texture_colours],
+                         "colours", offsets=False)
+
+    def _ragged(self, name: str, rows: list[np.ndarray], part: str = "", offsets: bool = True) -> None:
+        """Per-object arrays of varying length as ``NAME_offsets`` (M+1,) int64 and ``NAME[_PART]`` (concatenated)."""
+        if offsets:
+            self._dataset(f"{name}_offsets", np.r_[0, np.cumsum([len(r) for r in rows])].astype(np.int64))
+        self._dataset(f"{name}_{part}" if part else name, np.concatenate(rows))
 
     def _append(self, group: str, fields: dict, values: dict, start: int, n: int) -> None:
         for k, (shape, dtype) in fields.items():

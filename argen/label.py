@@ -58,6 +58,7 @@ from argen.features import check_max_depth, frame_points
 from argen.fileio import read_json, remove_stray_temps, write_json
 from argen.h5 import FrameLabels, InstanceTable, LabelFile, LabelWriter, ObjectTable, point_control_points
 from argen.models.objects import ObjectModel, load_models
+from argen.models.texture import TEXTURE_POINTS, shape_symmetries, surface_colours, textured
 
 CHUNK = 16  # frames per partial file
 FAR_MARGIN = 0.01  # metres beyond an object's bounding sphere where a masked pixel is taken as background
@@ -119,11 +120,24 @@ def sample_surface(vertices: np.ndarray, faces: np.ndarray, n: int, rng: np.rand
 
 
 def object_table(objects: list[ObjectModel], n_points: int = 1000, seed: int = 0) -> ObjectTable:
-    """The label file's objects table (sorted by id); model points sampled with a Generator seeded (seed, obj_id)."""
+    """The label file's objects table (sorted by id); model points sampled with a Generator seeded (seed, obj_id).
+    An object with shape symmetries its texture breaks (:func:`argen.models.texture.shape_symmetries`) also gets
+    ``TEXTURE_POINTS`` surface points with their colours (seeded (seed, obj_id, 1)), when its colours vary."""
     objects = sorted(objects, key=lambda o: o.obj_id)
     pts = [sample_surface(o.mesh.vertices, o.mesh.faces, n_points, np.random.default_rng([seed, o.obj_id]))
            for o in objects]
     cps = np.stack([o.control_points for o in objects])
+    shape_sym, tex_pts, tex_cols = [], [], []
+    for o in objects:  # the turns only a print tells apart, and the print (argen.models.texture)
+        turns = shape_symmetries(o)
+        tp = sample_surface(o.mesh.vertices, o.mesh.faces, TEXTURE_POINTS, np.random.default_rng([seed, o.obj_id, 1])) \
+            if len(turns) else np.zeros((0, 3))
+        tc = surface_colours(o.mesh, tp) if len(tp) else None
+        if tc is None or not textured(tc):
+            tp, tc = np.zeros((0, 3)), np.zeros((0, 3), np.uint8)
+        shape_sym.append(turns.astype(np.float32))
+        tex_pts.append(tp.astype(np.float32))
+        tex_cols.append(tc)
     return ObjectTable(
         ids=np.array([o.obj_id for o in objects], np.int32),
         names=[o.name for o in objects],
@@ -133,6 +147,7 @@ def object_table(objects: list[ObjectModel], n_points: int = 1000, seed: int = 0
         control_points=cps.astype(np.float32),
         model_points=np.stack(pts).astype(np.float32),
         sym_transforms=[bop.symmetry_transforms(o.info, CONTINUOUS_STEPS).astype(np.float32) for o in objects],
+        shape_symmetries=shape_sym, texture_points=tex_pts, texture_colours=tex_cols,
     )
 
 

@@ -23,7 +23,8 @@ class Checkpoint:
 
     model: PointNet2 in eval mode on the requested device; class_ids: object id of class index c + 1;
     objects: the label file's object table as plain lists (ids, names, diameters metres, symmetric,
-    control_points (M, 9, 3) metres, model_points (M, P, 3) metres, sym_transforms per object (S, 4, 4));
+    control_points (M, 9, 3) metres, model_points (M, P, 3) metres, sym_transforms per object (S, 4, 4), and,
+    where the label file had them, shape_symmetries, texture_points and texture_colours per object);
     num_points: points sampled per frame; step: training steps done; extra: train config, metrics;
     normalisation: the network input's colour normalisation (``detector.data.augment.input_normalisation``: with
     "colour": "none" the network has no colour input);

@@ -18,6 +18,7 @@ import numpy as np
 from argen.features import check_max_depth
 from detector.config import apply_set_options, parse_set_options
 from detector.errors import DetectorError, argen_errors
+from detector.geometry.colour_check import colour_checked
 from detector.geometry.icp import refine
 from detector.geometry.types import Detection, GeometryConfig, ObjectInfo
 from detector.geometry.verify import depth_checked, range_image
@@ -42,7 +43,9 @@ def estimate(preds: Predictions, objects: ObjectInfo, cfg: GeometryConfig, timin
     single network's once). ``cfg.min_score`` then drops the weak refined detections (by their score after ICP,
     recomputed there for a two-stage detection) and ``cfg.min_score_unrefined`` the weak unrefined ones; an
     other-class copy below that threshold is dropped before ICP (ICP lifts right poses of the stage-1 class from
-    below it, measured; the copies are many and mostly wrong). Adds "depth_check" seconds.
+    below it, measured; the copies are many and mostly wrong). With ``cfg.colour_check`` and ``features``, an
+    object whose print breaks its shape's symmetries is turned to the way round its print matches
+    (:func:`detector.geometry.colour_check.colour_checked`), before and after ICP. Adds "depth_check" seconds.
     """
     dets = detect(preds.xyz, preds.obj_ids, preds.confidence, preds.control_points, objects, cfg, timings)
     if poser is not None:
@@ -58,7 +61,12 @@ def estimate(preds: Predictions, objects: ObjectInfo, cfg: GeometryConfig, timin
         dets = nms(dets, objects.diameters, cfg.nms_fraction)
     lo = cfg.min_score if cfg.min_score_unrefined is None else cfg.min_score_unrefined
     dets = [d for d in dets if d.score >= lo or not d.other_class]  # a weak other-class copy is not worth an ICP
+    colours = features[:, 3:6] if cfg.colour_check and features is not None and objects.texture else None
     refined = refine(dets, preds.xyz, objects, cfg, timings, cloud) if cfg.icp else None
+    if colours is not None:
+        dets = colour_checked(dets, cloud, colours, objects, cfg, icp=False, timings=timings)
+        if refined is not None:
+            refined = colour_checked(refined, cloud, colours, objects, cfg, icp=True, timings=timings)
     if refined is not None and frame is not None:  # ICP rescored the two-stage detections: check them again
         t0 = time.perf_counter()
         again = [k for k, d in enumerate(refined) if d.points is not None]

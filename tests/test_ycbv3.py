@@ -4,6 +4,7 @@ the real mug."""
 
 from __future__ import annotations
 
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -42,10 +43,24 @@ def test_shipped_model_finds_the_objects_in_the_real_frames(real_labels, tmp_pat
                  poser=checkpoint_poser(ck, objects))
     errs = np.array([np.inf if r["icp"] is None else r["icp"] / r["diameter"] for r in s["instances"]])
     assert len(errs) == 30
-    # the shipped model gets the foam brick right in 8 of 10 frames and the gelatin box in one (the box turned the
-    # wrong way, the mug's handle hidden: RESULTS.md; 5 of 30 without the depth check and the other classes); a
-    # model that finds nothing, or finds the objects but not their orientation, gets none
-    assert np.sum(errs < 0.1) >= 7, np.round(errs, 3)
+    # the shipped model gets the foam brick right in 8 of 10 frames and the gelatin box in 8 (the box's way round
+    # chosen by its print, geometry.colour_check; the mug's handle is hidden: RESULTS.md); a model that finds
+    # nothing, or finds the objects but not their orientation, gets none
+    assert np.sum(errs < 0.1) >= 13, np.round(errs, 3)
+    box = np.array([r["obj_id"] == 8 for r in s["instances"]])
+    assert np.sum(errs[box] < 0.1) >= 6, np.round(errs[box], 3)
+
+
+def test_the_print_turns_the_real_gelatin_box(real_labels, tmp_path):
+    """Without the colour check the same model turns the gelatin box the wrong way in 9 of 10 frames (RESULTS.md):
+    what the test above counts comes from the print, not from the depth."""
+    ck = load_checkpoint(CKPT)
+    objects = checkpoint_objects(ck)[0]
+    cfg = replace(checkpoint_geometry_config(ck, None, True), colour_check=False)
+    s = evaluate(network_predictor(ck), real_labels, tmp_path / "rep", icp=True, cfg=cfg, min_visib=0.0,
+                 poser=checkpoint_poser(ck, objects))
+    errs = np.array([np.inf if r["icp"] is None else r["icp"] / r["diameter"] for r in s["instances"] if r["obj_id"] == 8])
+    assert np.sum(errs < 0.1) <= 2, np.round(errs, 3)
 
 
 def test_shipped_stage1_labels_the_real_mug(real_labels):

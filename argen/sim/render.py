@@ -61,6 +61,8 @@ from PIL import Image  # noqa: E402
 from scipy.sparse import coo_matrix  # noqa: E402
 from scipy.sparse.csgraph import connected_components  # noqa: E402
 
+from argen.models.texture import texture_image  # noqa: E402
+
 if os.environ["PYOPENGL_PLATFORM"] == "osmesa" and not hasattr(OpenGL.platform.PLATFORM, "OSMesa"):
     raise ImportError("PyOpenGL was imported before argen.sim.render could select OSMesa: import argen.sim.render "
                       "before pyrender/OpenGL, or set PYOPENGL_PLATFORM=osmesa in the environment")
@@ -198,24 +200,6 @@ def _crease_split(vertices: np.ndarray, faces: np.ndarray, crease: float = CREAS
     return cv[first], n[first].astype(np.float32), inverse.reshape(-1, 3)
 
 
-def _texture_image(visual) -> np.ndarray | None:
-    """The base-colour image of a trimesh TextureVisuals as (H, W, 3) uint8, or None."""
-    mat = getattr(visual, "material", None)
-    img = getattr(mat, "baseColorTexture", None)
-    if img is None:
-        img = getattr(mat, "image", None)
-    if img is None:
-        return None
-    if isinstance(img, Image.Image):
-        img = np.asarray(img.convert("RGB"))
-    img = np.asarray(img)
-    if img.dtype != np.uint8:
-        img = np.clip(np.round(img * 255.0), 0, 255).astype(np.uint8) if img.dtype.kind == "f" else img.astype(np.uint8)
-    if img.ndim == 2:
-        img = np.repeat(img[..., None], 3, axis=2)
-    return np.ascontiguousarray(img[..., :3])
-
-
 def _decimate(mesh: trimesh.Trimesh, max_faces: int) -> trimesh.Trimesh:
     """Quadric decimation to at most ``max_faces`` faces (open3d), keeping vertex colours.
 
@@ -259,7 +243,7 @@ def _to_pyrender(mesh: trimesh.Trimesh) -> pyrender.Mesh:
         colours = np.repeat(np.asarray(visual.face_colors)[:, :3], 3, axis=0)
         vertices, faces = vertices[faces].reshape(-1, 3), np.arange(3 * len(faces)).reshape(-1, 3)
     elif kind == "texture":
-        image = _texture_image(visual)
+        image = texture_image(visual)
         if image is not None and visual.uv is not None:
             uv = np.asarray(visual.uv, dtype=np.float64)[:, :2]
         else:

@@ -108,7 +108,9 @@ class FrameSource(torch.utils.data.Dataset):
 
 def object_table_dict(objects) -> dict:
     """The label file's object table as plain lists (for checkpoints): ids, names, diameters, symmetric,
-    control_points (M, 9, 3) metres, model_points (M, P, 3) metres, sym_transforms per object (S, 4, 4)."""
+    control_points (M, 9, 3) metres, model_points (M, P, 3) metres, sym_transforms per object (S, 4, 4),
+    shape_symmetries per object (T, 4, 4), texture_points (N, 3) metres and texture_colours (N, 3) 0-255 per
+    object (empty lists for a label file without them)."""
     return {
         "ids": [int(i) for i in objects.ids],
         "names": [str(n) for n in objects.names],
@@ -117,4 +119,7 @@ def object_table_dict(objects) -> dict:
         "control_points": np.asarray(objects.control_points, dtype=np.float32).tolist(),
         "model_points": np.asarray(objects.model_points, dtype=np.float32).tolist(),
         "sym_transforms": [np.asarray(s, dtype=np.float32).tolist() for s in objects.sym_transforms],
+        "shape_symmetries": [np.asarray(s, dtype=np.float32).tolist() for s in objects.shape_symmetries],
+        "texture_points": [np.asarray(p, dtype=np.float32).tolist() for p in objects.texture_points],
+        "texture_colours": [np.asarray(c, dtype=np.uint8).tolist() for c in objects.texture_colours],
     }

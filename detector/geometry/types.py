@@ -51,7 +51,10 @@ class GeometryConfig:
     score, a less consistent one's is scaled by consistency / depth_consistent (on a simulated LineMOD capture, 97 %
     of the right poses after ICP are at least 0.85 consistent, and 3 % of the far-wrong ones);
     other_classes: a two-stage model also poses each stage-1 detection as every other object whose class its
-    points give at least this mean probability (:func:`detector.geometry.voting.other_classes`); > 1: never.
+    points give at least this mean probability (:func:`detector.geometry.voting.other_classes`); > 1: never;
+    colour_check: turn a detection of an object whose print breaks its shape's symmetries (a printed box) to the
+    way round the frame's colours match (:func:`detector.geometry.colour_check.colour_checked`); needs the frame's
+    colours and a model whose label file carried the print (``ObjectInfo.texture``).
     """
 
     tau: float = 0.8
@@ -81,6 +84,7 @@ class GeometryConfig:
     depth_tolerance: float = 2.0
     depth_consistent: float = 0.85
     other_classes: float = 0.1
+    colour_check: bool = True
 
 
 @dataclass
@@ -135,12 +139,17 @@ class ObjectInfo:
     """What the geometry needs of each object, by obj_id.
 
     control_points: {obj_id: (9,3) metres model frame}; diameters: {obj_id: metres};
-    model_points: {obj_id: (P,3) metres model frame}.
+    model_points: {obj_id: (P,3) metres model frame}; shape_symmetries: {obj_id: (T,4,4)} the turns that map
+    an object's shape onto itself but that its print breaks (only objects that have them and a print);
+    texture: {obj_id: ((N,3) metres model frame, (N,3) RGB in [0, 1])} surface points and their colours, for the
+    same objects (:func:`detector.geometry.colour_check.colour_checked`).
     """
 
     control_points: dict[int, np.ndarray]
     diameters: dict[int, float]
     model_points: dict[int, np.ndarray]
+    shape_symmetries: dict[int, np.ndarray] = field(default_factory=dict)
+    texture: dict[int, tuple[np.ndarray, np.ndarray]] = field(default_factory=dict)
     _clouds: dict = field(default_factory=dict, repr=False)
 
     @classmethod
@@ -149,9 +158,23 @@ class ObjectInfo:
         get = (lambda k: table[k]) if isinstance(table, dict) else (lambda k: getattr(table, k))
         ids = [int(i) for i in get("ids")]
         cps, dia, mp = get("control_points"), get("diameters"), get("model_points")
+
+        def optional(key: str) -> list:  # tables written before a field existed lack it
+            try:
+                got = get(key)
+            except (KeyError, AttributeError):
+                return []
+            return list(got) if got is not None else []
+
+        turns, tex_p, tex_c = optional("shape_symmetries"), optional("texture_points"), optional("texture_colours")
+        textured = [k for k in range(len(ids)) if k < min(len(turns), len(tex_p), len(tex_c))
+                    and len(turns[k]) and len(tex_p[k]) and len(tex_p[k]) == len(tex_c[k])]
         return cls({i: np.asarray(cps[k], np.float64) for k, i in enumerate(ids)},
                    {i: float(dia[k]) for k, i in enumerate(ids)},
-                   {i: np.asarray(mp[k], np.float64) for k, i in enumerate(ids)})
+                   {i: np.asarray(mp[k], np.float64) for k, i in enumerate(ids)},
+                   {ids[k]: np.asarray(turns[k], np.float64).reshape(-1, 4, 4) for k in textured},
+                   {ids[k]: (np.asarray(tex_p[k], np.float64).reshape(-1, 3),
+                             np.asarray(tex_c[k], np.float64).reshape(-1, 3) / 255.0) for k in textured})
 
     def cloud(self, obj_id: int):
         """The cached open3d model cloud with normals of ``obj_id``."""
