@@ -8,6 +8,7 @@ from scipy.spatial.transform import Rotation
 
 from argen.models.objects import builtin_objects
 from detector.geometry.icp import (
+    distinct_poses,
     fit_residuals,
     fit_rms,
     icp_refine,
@@ -375,6 +376,22 @@ def test_icp_starts_from_alternatives_and_keeps_the_best_fit():
         assert three.icp == "accepted"
         assert trimmed_fit(objs, noisy, three.R, three.t) < trimmed_fit(objs, noisy, wrong, t)
         assert add_error(model, R, t, three.R, three.t) < 0.003
+
+
+def test_near_copies_of_a_start_are_refined_once():
+    """ICP from two starts 2 degrees and 1 mm apart ends in the same fit: only the first of them is kept; a start
+    turned 10 degrees, or moved 5 % of the diameter, is another start. The order stays."""
+    dia = 0.1
+    R0 = Rotation.from_rotvec([0.3, -0.2, 0.5]).as_matrix()
+    t0 = np.array([0.01, 0.02, 0.7])
+    turn = lambda deg: Rotation.from_rotvec(np.radians(deg) * np.array([0.0, 0.6, 0.8])).as_matrix() @ R0  # noqa: E731
+    poses = [(R0, t0), (turn(2), t0 + [0.001, 0, 0]), (turn(10), t0), (R0, t0 + [0, 0, 0.05 * dia]), (R0, t0)]
+    kept = distinct_poses(poses, dia)
+    assert len(kept) == 3
+    for (Ra, ta), k in zip(kept, (0, 2, 3)):
+        np.testing.assert_array_equal(Ra, poses[k][0])
+        np.testing.assert_array_equal(ta, poses[k][1])
+    assert len(distinct_poses(poses, 10 * dia)) == 2  # 5 mm is a near copy for a 1 m object
 
 
 def test_icp_keeps_a_right_pose_unless_it_fits_clearly_better():
