@@ -6,7 +6,9 @@ Numpy and scipy; metres."""
 
 from __future__ import annotations
 
+import os
 import time
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import replace
 
 import numpy as np
@@ -123,6 +125,8 @@ def owned_points(owners: np.ndarray, members: np.ndarray, num_predicted: int) ->
 #: are often near copies of each other: 8 starts were 5 distinct ones on average on the linemod test frames).
 SAME_START_DEG = 5.0
 SAME_START_OFFSET = 0.02
+#: Most threads for the ICP starts of one detection.
+ICP_THREADS = 4
 
 
 def distinct_poses(poses: list, diameter: float) -> list:
@@ -136,6 +140,17 @@ def distinct_poses(poses: list, diameter: float) -> list:
                    for R0, t0 in kept):
             kept.append((R, t))
     return kept
+
+
+_POOL: list = []
+
+
+def _icp_pool() -> ThreadPoolExecutor:
+    """The threads that run a detection's ICP starts side by side (open3d's ICP releases the GIL; each start's
+    result is the same as alone): as many as the CPU has cores, at most ``ICP_THREADS``."""
+    if not _POOL:
+        _POOL.append(ThreadPoolExecutor(max(1, min(ICP_THREADS, os.cpu_count() or 1)), thread_name_prefix="icp"))
+    return _POOL[0]
 
 
 def refine_pose(scene_points: np.ndarray, obj_id: int, R: np.ndarray, t: np.ndarray, objects: ObjectInfo,
@@ -154,9 +169,13 @@ def refine_pose(scene_points: np.ndarray, obj_id: int, R: np.ndarray, t: np.ndar
     gate = cfg.icp_gate * dia
     before = fit_rms(fit_residuals(scene_points, tree, normals, R, t, gate), cfg.icp_trim)
     starts = distinct_poses([(R, t)] + list(alternatives or [])[:max(cfg.icp_starts - 1, 0)], dia)
-    results = [icp_refine(scene_points, objects.model_points[obj_id], R0, t0, cfg.icp_distance * dia,
-                          cfg.icp_iterations, objects.cloud(obj_id), cfg.icp_kernel * dia if cfg.icp_kernel else None)
-               for R0, t0 in starts]
+    model_cloud, kernel = objects.cloud(obj_id), cfg.icp_kernel * dia if cfg.icp_kernel else None
+
+    def run(start):
+        return icp_refine(scene_points, objects.model_points[obj_id], start[0], start[1], cfg.icp_distance * dia,
+                          cfg.icp_iterations, model_cloud, kernel)
+
+    results = list(_icp_pool().map(run, starts)) if len(starts) > 1 else [run(starts[0])]
     res = fit_residuals(scene_points, tree, normals, np.stack([r[0] for r in results]),
                         np.stack([r[1] for r in results]), gate)  # every start's result in one query
     fits = [fit_rms(r, cfg.icp_trim) for r in res]
