@@ -109,6 +109,26 @@ def test_texture_colours_are_baked_and_glb_reads(tmp_path):
     assert np.asarray(back.visual.vertex_colors)[:, 0].max() > 200
 
 
+def test_symmetries_the_print_breaks_are_not_listed(tmp_path):
+    """A box's shape has three half turns; painted red on its -x half and blue on its +x half, only the turn about x
+    keeps its print (BOP lists symmetries with the texture in mind). Unpainted, all three are listed."""
+    m = C.box((0.1, 0.06, 0.03)).subdivide().subdivide()
+    uv = np.c_[(m.vertices[:, 0] + 0.05) / 0.1, (m.vertices[:, 1] + 0.03) / 0.06]
+    img = np.zeros((64, 64, 3), np.uint8)
+    img[:, :32] = (250, 10, 10)
+    img[:, 32:] = (10, 10, 250)
+    plain = m.copy()
+    m.visual = trimesh.visual.TextureVisuals(uv=uv, image=Image.fromarray(img))
+    m.export(tmp_path / "painted.glb")
+    plain.export(tmp_path / "plain.stl")
+    painted, bare = import_meshes([tmp_path / "painted.glb", tmp_path / "plain.stl"], ImportOptions(units="m"))
+    assert len(bare.model.info.symmetries_discrete) == 3
+    (kept,) = painted.model.info.symmetries_discrete
+    np.testing.assert_allclose(np.abs(np.diag(np.asarray(kept)[:3, :3])), 1.0, atol=1e-3)
+    assert np.asarray(kept)[0, 0] > 0.99  # the half turn about x: x stays
+    assert "2 of them broken by its print" in painted.symmetry_note
+
+
 def test_repairs_winding_inside_out_and_holes(tmp_path):
     s = C.icosphere(subdivisions=2, radius=0.04)
     f = np.asarray(s.faces).copy()

@@ -35,7 +35,8 @@ from argen.models.objects import (
     write_models,
     write_models_eval,
 )
-from argen.models.symmetry import DEFAULT_TOL, Symmetries, find_symmetries
+from argen.models.symmetry import DEFAULT_TOL, Symmetries, find_symmetries, turn
+from argen.models.texture import PRINT_TOL, print_moves
 
 #: File types read (what trimesh loads as triangle meshes).
 MESH_SUFFIXES = (".obj", ".stl", ".ply", ".glb", ".gltf", ".off")
@@ -300,6 +301,27 @@ def _symmetries_file(path: str) -> dict[str, tuple[list, list]]:
     return {str(k).lower(): bop.parse_symmetries(v, f"{path} entry '{k}'") for k, v in raw.items()}
 
 
+def _keep_printed(mesh: trimesh.Trimesh, info) -> str:
+    """Drop from ``info`` the symmetries the mesh's print breaks (:func:`argen.models.texture.print_moves`): BOP
+    lists an object's symmetries with its texture in mind, and a printed box turned half way is another pose. A
+    continuous symmetry is kept when quarter, half and three-quarter turns about its axis keep the print. Returns
+    a note for the import report ("" when nothing was dropped); the dropped turns are left to the detector's colour
+    check (argen label stores them as the object's shape symmetries)."""
+    disc = list(info.symmetries_discrete)
+    cont = list(info.symmetries_continuous)
+    turns = [turn(np.asarray(c["axis"], float), a, np.asarray(c["offset"], float))
+             for c in cont for a in (np.pi / 2, np.pi, 1.5 * np.pi)]
+    moved = print_moves(mesh, info.diameter, disc + turns)
+    keep_d = [S for S, m in zip(disc, moved[:len(disc)]) if m < PRINT_TOL]
+    keep_c = [c for k, c in enumerate(cont) if np.all(moved[len(disc) + 3 * k:len(disc) + 3 * k + 3] < PRINT_TOL)]
+    dropped = len(disc) - len(keep_d) + len(cont) - len(keep_c)
+    if not dropped:
+        return ""
+    info.symmetries_discrete, info.symmetries_continuous = keep_d, keep_c
+    return (f"; {dropped} of them broken by its print, not listed (kept: {len(keep_d)} discrete, "
+            f"{len(keep_c)} continuous)")
+
+
 def import_mesh(path: Path, obj_id: int, opts: ImportOptions,
                 given: dict[str, tuple[list, list]] | None = None) -> ImportedObject:
     """Read, convert to metres, orient, repair, colour and analyse one mesh file as object ``obj_id``."""
@@ -326,6 +348,8 @@ def import_mesh(path: Path, obj_id: int, opts: ImportOptions,
         sym = find_symmetries(mesh, info.diameter, tol=opts.symmetry_tol)
         info.symmetries_discrete, info.symmetries_continuous = list(sym.discrete), list(sym.continuous)
         sym_note = sym.describe()
+        if coloured and (sym.discrete or sym.continuous):
+            sym_note += _keep_printed(mesh, info)
     model = ObjectModel(obj_id, name, mesh, info, source=str(path))
     return ImportedObject(model, path, units, note, repairs, sym, sym_note, coloured)
 
