@@ -1,4 +1,4 @@
-"""Inference time per frame, per stage (sampling, network, voting, Kabsch, stage 2, ICP, depth check), on CPU or GPU.
+"""Inference time per frame, per stage (sampling, network, voting, Kabsch, stage 2, ICP, the checks), on CPU or GPU.
 
 A two-stage checkpoint (``--checkpoint checkpoints/lm8.pt``) is timed end to end on its own predictions: the
 median per stage and the median of whole frames (ICP included) over ``--frames`` frames after a warm-up.
@@ -81,10 +81,11 @@ def pose_times(frames: list, objects, num_points: int) -> dict[str, float]:
 
 def two_stage_times(ck, frames: list, device: str, sets: list[str] | None = None) -> dict[str, float]:
     """A two-stage checkpoint end to end on real predictions: median seconds per stage and of the whole frame
-    (sampling, network, voting, stage 2, ICP, depth check with the model's own geometry settings, ``sets`` over
+    (sampling, network, voting, stage 2, ICP, depth check, colour check with the model's own geometry settings, ``sets`` over
     them), detections per frame and stage 2's crops per frame (the stage-1 detections and their other-class copies
     it poses)."""
     from detector.infer import checkpoint_geometry_config, checkpoint_objects, checkpoint_poser, estimate
+    from detector.report import STAGES
     from detector.stage1.predictor import network_predictor
 
     objects = checkpoint_objects(ck)[0]
@@ -105,8 +106,7 @@ def two_stage_times(ck, frames: list, device: str, sets: list[str] | None = None
         if k:
             runs.append(t)
             dets.append(len(r))
-    out = {s: statistics.median(r.get(s, 0.0) for r in runs)
-           for s in ("sampling", "network", "voting", "kabsch", "stage2", "icp", "depth_check", "total")}
+    out = {s: statistics.median(r.get(s, 0.0) for r in runs) for s in (*STAGES, "total")}
     out["detections"] = statistics.mean(dets)
     out["crops"] = statistics.mean(crops[1:])  # after the warm-up
     return out
