@@ -14,7 +14,8 @@ from argen.label import object_table
 from argen.models.objects import ObjectModel, info_from_mesh, surface_scene
 from argen.models.texture import shape_symmetries, surface_colours
 from detector.data.frames import object_table_dict
-from detector.geometry.colour_check import colour_checked, turned_poses
+from detector.geometry.colour_check import colour_checked
+from detector.geometry.icp import turned_poses
 from detector.geometry.types import Detection, GeometryConfig, ObjectInfo
 
 EXTENTS = (0.09, 0.10, 0.03)  # metres, a gelatin-box-like print carrier

@@ -16,9 +16,10 @@ from detector.geometry.icp import (
     refine_pose,
     support_radius,
     surface_support,
+    turned_poses,
 )
 from detector.geometry.kabsch import kabsch
-from detector.geometry.types import Detection, GeometryConfig, ObjectInfo
+from detector.geometry.types import Detection, GeometryConfig, ObjectInfo, half_turns
 from detector.geometry.voting import detect, nms, other_classes, robust_control_points, vote_clusters
 
 BOX = np.array([[x, y, z] for x in (-0.04, 0.04) for y in (-0.03, 0.03) for z in (-0.02, 0.02)] + [[0, 0, 0]])
@@ -368,14 +369,53 @@ def test_icp_starts_from_alternatives_and_keeps_the_best_fit():
         bad = Rotation.from_rotvec(np.radians(90) * np.array([1.0, 0.0, 0.0])).as_matrix() @ R
         d = Detection(1, 1.0, wrong, t, len(surf), np.zeros((9, 3)), np.arange(len(surf)),
                       alternatives=[(bad, t), (near, t + 0.01)])
-        (one,) = refine([d], noisy, objs, GeometryConfig(icp=True, icp_starts=1))
-        (two,) = refine([d], noisy, objs, GeometryConfig(icp=True, icp_starts=2))
-        (three,) = refine([d], noisy, objs, GeometryConfig(icp=True, icp_starts=3))
+        (one,), (two,), (three,) = (refine([d], noisy, objs, GeometryConfig(icp=True, icp_starts=n,
+                                                                         icp_half_turns=False)) for n in (1, 2, 3))
         assert add_error(model, R, t, one.R, one.t) > 0.1 * obj.diameter  # ICP from the wrong pose stays wrong
         assert add_error(model, R, t, two.R, two.t) > 0.1 * obj.diameter  # the near pose is the third start
         assert three.icp == "accepted"
         assert trimmed_fit(objs, noisy, three.R, three.t) < trimmed_fit(objs, noisy, wrong, t)
         assert add_error(model, R, t, three.R, three.t) < 0.003
+
+
+def test_half_turns_are_turns_about_the_model_axes_that_keep_the_object_in_place():
+    """Each of the three transforms is a proper rotation by 180 degrees about one of the model's x, y and z axes
+    that maps the centroid of the model points onto itself: the turned object stays where it was, wherever the
+    mesh's origin lies."""
+    obj = builtin_objects(["duck"])[0]
+    pts = np.asarray(obj.mesh.sample(3000, seed=3))
+    for model in (pts, pts + [0.3, -0.2, 0.05]):  # the same shape with its origin elsewhere
+        c = model.mean(axis=0)
+        turns = half_turns(model)
+        assert turns.shape == (3, 4, 4)
+        for k, T in enumerate(turns):
+            F = T[:3, :3]
+            np.testing.assert_allclose(F @ F.T, np.eye(3), atol=1e-12)
+            assert np.linalg.det(F) == pytest.approx(1.0)
+            assert np.trace(F) == pytest.approx(-1.0)  # 1 + 2 cos(180 degrees)
+            np.testing.assert_allclose(F[:, k], np.eye(3)[k])  # the axis of the turn: model axis k
+            turned = model @ F.T + T[:3, 3]
+            np.testing.assert_allclose(turned.mean(axis=0), c, atol=1e-12)
+            assert np.abs(turned - model).max() > 0.5 * obj.diameter  # a turn, not the identity
+
+
+def test_icp_also_starts_from_half_turns_and_leaves_the_other_side():
+    """A pose that shows the object's other side (turned half way about its upright axis) is a local
+    minimum that ICP from that pose alone cannot leave; with ``icp_half_turns`` ICP also starts from the pose turned
+    back, which fits better, and ends on the right pose."""
+    rng = np.random.default_rng(5)
+    for name in ("duck", "drill"):
+        obj, model, R, t, surf, _ = resting_scene(name, rng)
+        objs = ObjectInfo({1: obj.control_points}, {1: obj.diameter}, {1: model})
+        noisy = surf + rng.normal(0, 0.001, surf.shape)
+        Rk, tk = turned_poses(R, t, objs.half_turns(1)[2:])  # about the model's z: its upright
+        d = Detection(1, 1.0, Rk[1], tk[1], len(surf), np.zeros((9, 3)), np.arange(len(surf)))
+        assert add_error(model, R, t, d.R, d.t) > 0.2 * obj.diameter
+        (alone,) = refine([d], noisy, objs, GeometryConfig(icp=True, icp_half_turns=False))
+        (turned,) = refine([d], noisy, objs, GeometryConfig(icp=True))
+        assert add_error(model, R, t, alone.R, alone.t) > 0.1 * obj.diameter
+        assert turned.icp == "accepted"
+        assert add_error(model, R, t, turned.R, turned.t) < 0.003
 
 
 def test_near_copies_of_a_start_are_refined_once():

@@ -18,7 +18,7 @@ from dataclasses import replace
 import numpy as np
 from scipy.spatial import cKDTree
 
-from detector.geometry.icp import fit_residuals, fit_rms, refine_pose, support_radius, surface_support
+from detector.geometry.icp import fit_residuals, fit_rms, refine_pose, support_radius, surface_support, turned_poses
 
 #: Fewest frame points matched to the model's print for a turn to be scored.
 MIN_MATCHED = 30
@@ -50,15 +50,6 @@ def colour_match(points: np.ndarray, colours: np.ndarray, R: np.ndarray, t: np.n
     return -float(np.abs(a / np.maximum(ma, 1e-3) - b / np.maximum(mb, 1e-3)).mean()), n
 
 
-def turned_poses(R: np.ndarray, t: np.ndarray, turns: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The pose (R (3,3), t (3,)) and the pose after each model-frame turn (T,4,4), as (T+1,3,3), (T+1,3): the pose
-    itself first. x_cam = R (S x + s) + t, so the turned pose is (R S, R s + t)."""
-    S = np.asarray(turns, np.float64).reshape(-1, 4, 4)
-    Rk = np.concatenate([np.asarray(R, np.float64)[None], np.einsum("ij,kjl->kil", R, S[:, :3, :3])])
-    tk = np.concatenate([np.asarray(t, np.float64)[None], S[:, :3, 3] @ np.asarray(R, np.float64).T + t])
-    return Rk, tk
-
-
 def colour_checked(detections: list, cloud: np.ndarray, colours: np.ndarray, objects, cfg, icp: bool,
                    timings: dict | None = None) -> list:
     """Copies of ``detections`` (:class:`detector.geometry.types.Detection`) of objects with a print and shape
@@ -68,18 +59,15 @@ def colour_checked(detections: list, cloud: np.ndarray, colours: np.ndarray, obj
     carries ``points`` (rows of ``cloud``: a two-stage model's) is checked. Candidates: the pose and its turns whose
     trimmed fit to those points (:func:`detector.geometry.icp.fit_rms`) is within ``FIT_SLACK`` x diameter of the
     best; colours are compared within twice the support distance. With ``icp``, a turned pose is refined by ICP from
-    there (:func:`detector.geometry.icp.refine_pose`) and a two-stage detection's score recomputed (its support).
-    Adds "colour_check" seconds."""
+    there alone (:func:`detector.geometry.icp.refine_pose`; a start turned half way could undo the choice) and a
+    two-stage detection's score recomputed (its support). Adds "colour_check" seconds."""
     t0 = time.perf_counter()
     out = list(detections)
     cloud, colours = np.asarray(cloud, np.float64), np.asarray(colours, np.float64)
     for k, d in enumerate(detections):
         if d.obj_id not in objects.texture or d.points is None or len(d.points) < MIN_MATCHED:
             continue
-        tex_pts, tex_cols = objects.texture[d.obj_id]
-        key = ("texture", d.obj_id)
-        if key not in objects._clouds:
-            objects._clouds[key] = cKDTree(tex_pts)
+        tex_tree, tex_cols = objects.texture_tree(d.obj_id)
         dia = objects.diameters[d.obj_id]
         radius = support_radius(cfg.support_distance, cfg.support_floor, dia)
         pts, cols = cloud[d.points], colours[d.points]
@@ -88,7 +76,7 @@ def colour_checked(detections: list, cloud: np.ndarray, colours: np.ndarray, obj
         fits = np.array([fit_rms(r, cfg.icp_trim) for r in fit_residuals(pts, tree, normals, Rk, tk,
                                                                           cfg.icp_gate * dia)])
         cand = np.flatnonzero(fits <= fits.min() + FIT_SLACK * dia)
-        scores = [colour_match(pts, cols, Rk[c], tk[c], objects._clouds[key], tex_cols, 2 * radius)[0] for c in cand]
+        scores = [colour_match(pts, cols, Rk[c], tk[c], tex_tree, tex_cols, 2 * radius)[0] for c in cand]
         if not np.isfinite(max(scores)):
             continue
         best = int(cand[int(np.argmax(scores))])
@@ -96,7 +84,7 @@ def colour_checked(detections: list, cloud: np.ndarray, colours: np.ndarray, obj
             continue
         R, t = Rk[best], tk[best]
         if icp:
-            R, t, _, _ = refine_pose(pts, d.obj_id, R, t, objects, replace(cfg, icp_starts=1))
+            R, t, _, _ = refine_pose(pts, d.obj_id, R, t, objects, replace(cfg, icp_starts=1, icp_half_turns=False))
         score = surface_support(pts, tree, normals, R, t, radius) if icp else d.score
         out[k] = replace(d, R=R, t=t, score=score)
     if timings is not None:

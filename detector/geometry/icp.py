@@ -142,6 +142,15 @@ def distinct_poses(poses: list, diameter: float) -> list:
     return kept
 
 
+def turned_poses(R: np.ndarray, t: np.ndarray, turns: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The pose (R (3,3), t (3,)) and the pose after each model-frame turn (T,4,4), as (T+1,3,3), (T+1,3): the pose
+    itself first. x_cam = R (S x + s) + t, so the turned pose is (R S, R s + t)."""
+    S = np.asarray(turns, np.float64).reshape(-1, 4, 4)
+    Rk = np.concatenate([np.asarray(R, np.float64)[None], np.einsum("ij,kjl->kil", R, S[:, :3, :3])])
+    tk = np.concatenate([np.asarray(t, np.float64)[None], S[:, :3, 3] @ np.asarray(R, np.float64).T + t])
+    return Rk, tk
+
+
 _POOL: list = []
 
 
@@ -160,15 +169,20 @@ def refine_pose(scene_points: np.ndarray, obj_id: int, R: np.ndarray, t: np.ndar
     by at least ``cfg.icp_min_gain`` of the diameter.
 
     scene_points: (S,3) camera frame, metres; R (3,3), t (3,) the initial T_cam_model; alternatives: other
-    starting poses [(R, t), ...], of which the first ``cfg.icp_starts - 1`` are also refined (a near copy of an
-    earlier start only once: :func:`distinct_poses`); the ICP result that fits best is the candidate. Returns R (3,3), t (3,), accepted (False: the input pose, unchanged) and
-    (RMS before, RMS after) in metres.
+    starting poses [(R, t), ...], of which the first ``cfg.icp_starts - 1`` are also refined, and with
+    ``cfg.icp_half_turns`` (R, t) turned half way about each of the object's axes (a near copy of an
+    earlier start only once: :func:`distinct_poses`); the ICP result that fits best is the candidate. Returns R (3,3),
+    t (3,), accepted (False: the input pose, unchanged) and (RMS before, RMS after) in metres.
     """
     dia = objects.diameters[obj_id]
     tree, normals = objects.surface(obj_id)
     gate = cfg.icp_gate * dia
     before = fit_rms(fit_residuals(scene_points, tree, normals, R, t, gate), cfg.icp_trim)
-    starts = distinct_poses([(R, t)] + list(alternatives or [])[:max(cfg.icp_starts - 1, 0)], dia)
+    starts = [(R, t)] + list(alternatives or [])[:max(cfg.icp_starts - 1, 0)]
+    if cfg.icp_half_turns:  # last: of equal fits the first wins, so a turn must fit better to be kept
+        Rk, tk = turned_poses(R, t, objects.half_turns(obj_id))
+        starts += list(zip(Rk[1:], tk[1:]))
+    starts = distinct_poses(starts, dia)
     model_cloud, kernel = objects.cloud(obj_id), cfg.icp_kernel * dia if cfg.icp_kernel else None
 
     def run(start):

@@ -26,7 +26,10 @@ class GeometryConfig:
     the ICP pose is kept (see :func:`fit_rms`); icp_gate: a scene point farther than this fraction of the
     diameter from every model point counts as an outlier at that distance; icp_starts: ICP runs from the
     detection's pose and from up to ``icp_starts - 1`` of its ``alternatives`` and keeps the best-fitting result
-    (a wrong-way first pose is a local minimum that ICP alone cannot leave); icp_min_gain: the ICP pose is kept
+    (a wrong-way first pose is a local minimum that ICP alone cannot leave); icp_half_turns: ICP also starts from
+    the detection's pose turned half way about each of the object's axes through its centroid (:func:`half_turns`):
+    a pose that shows the object's other side fits its points nearly as well and ICP cannot leave it (measured on
+    the simulated linemod test capture: the duck and the can turned about their upright axis); icp_min_gain: the ICP pose is kept
     only when it lowers that trimmed RMS by at least this fraction of the diameter (a smaller gain is within what
     the model's point sampling itself contributes, and on a few points of a smooth surface ICP can slide a right
     pose by centimetres for such a gain); icp_points: ICP and its acceptance test use at most this many of a
@@ -71,6 +74,7 @@ class GeometryConfig:
     icp_trim: float = 0.7
     icp_gate: float = 0.05
     icp_starts: int = 8
+    icp_half_turns: bool = True
     icp_min_gain: float = 0.001
     icp_points: int = 0
     support_distance: float = 0.02
@@ -134,6 +138,24 @@ def make_model_cloud(model_points: np.ndarray):
     return pc
 
 
+def half_turns(model_points: np.ndarray) -> np.ndarray:
+    """The turns by 180 degrees about the model frame's x, y and z axes through the centroid of an object's surface
+    points, as (3,4,4) float64 model-frame transforms x -> F (x - c) + c.
+
+    model_points: (P,3) metres, model frame. A half turn about the centroid keeps the object where it was; the axes
+    are the mesh's own, which a mesh made of an object (BOP's models, a CAD export) aligns with its upright and its
+    sides. Measured against the shape's principal axes on the simulated linemod test capture: 85.2 against 84.8 %
+    ADD(-S) with ICP, the duck 90.2 against 83.3 (its upright is not a principal axis)."""
+    x = np.asarray(model_points, np.float64)
+    c = x.mean(axis=0)
+    out = np.tile(np.eye(4), (3, 1, 1))
+    for k in range(3):
+        F = -np.eye(3)
+        F[k, k] = 1.0  # 180 degrees about axis k
+        out[k, :3, :3], out[k, :3, 3] = F, c - F @ c
+    return out
+
+
 @dataclass
 class ObjectInfo:
     """What the geometry needs of each object, by obj_id.
@@ -181,6 +203,22 @@ class ObjectInfo:
         if obj_id not in self._clouds:
             self._clouds[obj_id] = make_model_cloud(self.model_points[obj_id])
         return self._clouds[obj_id]
+
+    def half_turns(self, obj_id: int) -> np.ndarray:
+        """(3,4,4) the model-frame half turns of ``obj_id`` about its axes through its centroid (:func:`half_turns`),
+        cached."""
+        key = ("half_turns", obj_id)
+        if key not in self._clouds:
+            self._clouds[key] = half_turns(self.model_points[obj_id])
+        return self._clouds[key]
+
+    def texture_tree(self, obj_id: int):
+        """(cKDTree of the print's surface points, (N,3) their RGB in [0, 1]) of ``obj_id`` (one in ``texture``),
+        cached."""
+        key = ("texture", obj_id)
+        if key not in self._clouds:
+            self._clouds[key] = cKDTree(self.texture[obj_id][0])
+        return self._clouds[key], self.texture[obj_id][1]
 
     def surface(self, obj_id: int):
         """(cKDTree of the model points, (P,3) their unit normals) of ``obj_id``, cached: the fit measure's model."""
