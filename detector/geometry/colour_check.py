@@ -18,7 +18,8 @@ from dataclasses import replace
 import numpy as np
 from scipy.spatial import cKDTree
 
-from detector.geometry.icp import fit_residuals, fit_rms, refine_pose, support_radius, surface_support, turned_poses
+from detector.geometry.icp import (fit_residuals, fit_rms, icp_points, refine_pose, support_radius, surface_support,
+                                   turned_poses)
 
 #: Fewest frame points matched to the model's print for a turn to be scored.
 MIN_MATCHED = 30
@@ -59,8 +60,8 @@ def colour_checked(detections: list, cloud: np.ndarray, colours: np.ndarray, obj
     carries ``points`` (rows of ``cloud``: a two-stage model's) is checked. Candidates: the pose and its turns whose
     trimmed fit to those points (:func:`detector.geometry.icp.fit_rms`) is within ``FIT_SLACK`` x diameter of the
     best; colours are compared within twice the support distance. With ``icp``, a turned pose is refined by ICP from
-    there alone (:func:`detector.geometry.icp.refine_pose`; a start turned half way could undo the choice) and a
-    two-stage detection's score recomputed (its support). Adds "colour_check" seconds."""
+    there alone, on the points ICP takes (:func:`detector.geometry.icp.refine_pose`, :func:`icp_points`; a start
+    turned half way could undo the choice), and a two-stage detection's score recomputed (its support, all points). Adds "colour_check" seconds."""
     t0 = time.perf_counter()
     out = list(detections)
     cloud, colours = np.asarray(cloud, np.float64), np.asarray(colours, np.float64)
@@ -84,7 +85,8 @@ def colour_checked(detections: list, cloud: np.ndarray, colours: np.ndarray, obj
             continue
         R, t = Rk[best], tk[best]
         if icp:
-            R, t, _, _ = refine_pose(pts, d.obj_id, R, t, objects, replace(cfg, icp_starts=1, icp_half_turns=False))
+            R, t, _, _ = refine_pose(icp_points(pts, cfg), d.obj_id, R, t, objects,
+                                     replace(cfg, icp_starts=1, icp_half_turns=False))
         score = surface_support(pts, tree, normals, R, t, radius) if icp else d.score
         out[k] = replace(d, R=R, t=t, score=score)
     if timings is not None:

@@ -200,6 +200,14 @@ def refine_pose(scene_points: np.ndarray, obj_id: int, R: np.ndarray, t: np.ndar
     return np.asarray(R, np.float64), np.asarray(t, np.float64), False, (before, after)
 
 
+def icp_points(points: np.ndarray, cfg: GeometryConfig) -> np.ndarray:
+    """The scene points (S,3) metres that ICP and its acceptance test use: at most ``cfg.icp_points`` of them, evenly
+    spread over their order (all for ``cfg.icp_points`` <= 0)."""
+    if cfg.icp_points <= 0 or len(points) <= cfg.icp_points:
+        return points
+    return points[np.linspace(0, len(points) - 1, cfg.icp_points).round().astype(np.int64)]
+
+
 def refine(detections: list[Detection], xyz: np.ndarray, objects: ObjectInfo, cfg: GeometryConfig,
            timings: dict | None = None, cloud: np.ndarray | None = None) -> list[Detection]:
     """ICP-refined copies of ``detections`` using each one's scene points (metres).
@@ -226,9 +234,7 @@ def refine(detections: list[Detection], xyz: np.ndarray, objects: ObjectInfo, cf
         if len(pts) < cfg.icp_min_points:
             out.append(replace(d, icp="skipped"))
             continue
-        fit = pts if cfg.icp_points <= 0 or len(pts) <= cfg.icp_points else \
-            pts[np.linspace(0, len(pts) - 1, cfg.icp_points).round().astype(np.int64)]
-        R, t, ok, _ = refine_pose(fit, d.obj_id, d.R, d.t, objects, cfg, d.alternatives)
+        R, t, ok, _ = refine_pose(icp_points(pts, cfg), d.obj_id, d.R, d.t, objects, cfg, d.alternatives)
         score = d.score
         if d.points is not None:  # a two-stage detection: its score is the support of its points, at the new pose
             tree, normals = objects.surface(d.obj_id)
