@@ -163,10 +163,11 @@ def _texture_tables(o, n: int, path) -> dict:
     if "shape_sym" not in o:
         return {}
     out = {}
-    for key, name, dtype, shape in (("shape_symmetries", "shape_sym", np.float32, (4, 4)),
-                                    ("texture_points", "texture_points", np.float32, (3,)),
-                                    ("texture_colours", "texture_colours", np.uint8, (3,))):
-        off = o[("shape_sym" if key == "shape_symmetries" else "texture") + "_offsets"][()].astype(np.int64)
+    for key, name, offsets, dtype, shape in (
+            ("shape_symmetries", "shape_sym", "shape_sym_offsets", np.float32, (4, 4)),
+            ("texture_points", "texture_points", "texture_offsets", np.float32, (3,)),
+            ("texture_colours", "texture_colours", "texture_offsets", np.uint8, (3,))):
+        off = o[offsets][()].astype(np.int64)
         data = o[name][()].astype(dtype).reshape(-1, *shape)
         if len(off) != n + 1 or off[-1] != len(data) or np.any(np.diff(off) < 0):
             raise ArgenError(f"label file {path} is inconsistent: objects/{name} does not match its offsets")
@@ -352,9 +353,8 @@ class LabelWriter:
         self._dataset("objects/corners", np.asarray(o.corners, np.float32).reshape(-1, 8, 3))
         self._dataset("objects/control_points", np.asarray(o.control_points, np.float32).reshape(-1, 9, 3))
         self._dataset("objects/model_points", np.asarray(o.model_points, np.float32))
-        sym = [np.asarray(s, np.float32).reshape(-1, 4, 4) for s in o.sym_transforms]
-        self._dataset("objects/sym_offsets", np.r_[0, np.cumsum([len(s) for s in sym])].astype(np.int64))
-        self._dataset("objects/sym_transforms", np.concatenate(sym) if sym else np.zeros((0, 4, 4), np.float32))
+        self._ragged("objects/sym", [np.asarray(s, np.float32).reshape(-1, 4, 4) for s in o.sym_transforms],
+                     "transforms", empty=np.zeros((0, 4, 4), np.float32))
         if o.shape_symmetries:
             self._ragged("objects/shape_sym", [np.asarray(s, np.float32).reshape(-1, 4, 4) for s in o.shape_symmetries])
             self._ragged("objects/texture", [np.asarray(p, np.float32).reshape(-1, 3) for p in o.texture_points],
@@ -362,11 +362,13 @@ class LabelWriter:
             self._ragged("objects/texture", [np.asarray(c, np.uint8).reshape(-1, 3) for c in o.texture_colours],
                          "colours", offsets=False)
 
-    def _ragged(self, name: str, rows: list[np.ndarray], part: str = "", offsets: bool = True) -> None:
-        """Per-object arrays of varying length as ``NAME_offsets`` (M+1,) int64 and ``NAME[_PART]`` (concatenated)."""
+    def _ragged(self, name: str, rows: list[np.ndarray], part: str = "", offsets: bool = True,
+                empty: np.ndarray | None = None) -> None:
+        """Per-object arrays (R_m, ...) of varying length R_m as ``NAME_offsets`` (M+1,) int64 and ``NAME[_PART]``
+        (concatenated); ``empty``: what is written for a table of no objects (its dtype and row shape)."""
         if offsets:
             self._dataset(f"{name}_offsets", np.r_[0, np.cumsum([len(r) for r in rows])].astype(np.int64))
-        self._dataset(f"{name}_{part}" if part else name, np.concatenate(rows))
+        self._dataset(f"{name}_{part}" if part else name, np.concatenate(rows) if rows else empty)
 
     def _append(self, group: str, fields: dict, values: dict, start: int, n: int) -> None:
         for k, (shape, dtype) in fields.items():
