@@ -46,6 +46,27 @@ $D eval runs/lm8/model.pt "$OUT/lchf_test.h5" --out reports/lm8_lchf  --icp --qu
 OFF=(--set geometry.depth_check=false --set geometry.other_classes=2)
 $D eval runs/lm8/model.pt "$OUT/lm_test.h5"   --out reports/lm8_test_nochecks --icp --quiet "${OFF[@]}"
 $D eval runs/lm8/model.pt "$OUT/lchf_test.h5" --out reports/lm8_lchf_nochecks --icp --quiet "${OFF[@]}"
+#    ICP as before its half-turn starts, the half turns with 30 ICP iterations, a stage-1 centre from 2 votes (on the
+#    validation captures too) and sampling seed 1 (RESULTS.md, "ICP's half-turn starts" and the ycbv section)
+G=geometry
+for a in "noturns:$G.icp_half_turns=false $G.icp_iterations=30" "it30:$G.icp_iterations=30" \
+         "minvotes2:$G.min_votes=2"; do
+  name=${a%%:*}; sets=()
+  for kv in ${a#*:}; do sets+=(--set "$kv"); done
+  for d in lm_test:test lchf_test:lchf; do
+    [ -f "reports/lm8_${d#*:}_$name/report.json" ] || \
+      $D eval runs/lm8/model.pt "$OUT/${d%%:*}.h5" --out "reports/lm8_${d#*:}_$name" --icp --quiet "${sets[@]}"
+  done
+done
+for d in lm_val lchf_val; do
+  [ -f "reports/lm8_${d}/report.json" ] || $D eval runs/lm8/model.pt "$OUT/$d.h5" --out "reports/lm8_$d" --icp --quiet
+  [ -f "reports/lm8_${d}_minvotes2/report.json" ] || $D eval runs/lm8/model.pt "$OUT/$d.h5" \
+    --out "reports/lm8_${d}_minvotes2" --icp --quiet --set $G.min_votes=2
+done
+for d in lm_test:test lchf_test:lchf; do
+  [ -f "reports/lm8_${d#*:}_seed1/report.json" ] || \
+    $D eval runs/lm8/model.pt "$OUT/${d%%:*}.h5" --out "reports/lm8_${d#*:}_seed1" --icp --quiet --seed 1
+done
 # the time-to-accuracy curve: each kept stage-2 snapshot with stage 1, on the test set (docs/img)
 .venv/bin/python examples/linemod/curve.py runs/lm8 "$OUT/lm_test.h5" --out docs/img/time_to_accuracy.png
 

@@ -49,13 +49,16 @@ $D eval "$RUN/model.pt" "$OUT/ycbv_real.h5" --out "$REP" --icp --min-visib 0 --q
 # 5. training length: each kept stage-2 snapshot with the run's stage 1, on the real frames
 [ -f "$REP/curve.json" ] || .venv/bin/python examples/linemod/curve.py "$RUN" "$OUT/ycbv_real.h5" --out "$REP/curve.png" --min-visib 0
 # 6. what inference bought (RESULTS.md): the same model without the colour check, the depth check and the other
-#    classes, each alone, without the colour check only, and other thresholds of the other classes
+#    classes, each alone, without the colour check only, and other thresholds of the other classes (all of these
+#    with ICP as it was before its half-turn starts, OLD); then the half turns and ICP's iterations
 G=geometry
-for a in "neither:$G.depth_check=false $G.other_classes=2 $G.colour_check=false" \
-         "depth_check_only:$G.other_classes=2 $G.colour_check=false" \
-         "other_classes_only:$G.depth_check=false $G.colour_check=false" \
-         "no_colour_check:$G.colour_check=false" "other_classes_0.05:$G.other_classes=0.05" \
-         "other_classes_0.2:$G.other_classes=0.2"; do
+OLD="$G.icp_half_turns=false $G.icp_iterations=30"
+for a in "neither:$G.depth_check=false $G.other_classes=2 $G.colour_check=false $OLD" \
+         "depth_check_only:$G.other_classes=2 $G.colour_check=false $OLD" \
+         "other_classes_only:$G.depth_check=false $G.colour_check=false $OLD" \
+         "no_colour_check:$G.colour_check=false $OLD" "all_three:$OLD" \
+         "other_classes_0.05:$G.other_classes=0.05 $OLD" "other_classes_0.2:$G.other_classes=0.2 $OLD" \
+         "half_turns_30_iterations:$G.icp_iterations=30" "no_half_turns:$G.icp_half_turns=false"; do
   name=${a%%:*}; sets=()
   for kv in ${a#*:}; do sets+=(--set "$kv"); done
   [ -f "$REP/inference_$name/report.json" ] || \
@@ -70,6 +73,17 @@ for c in true false; do
   [ -f "$REP/simtest_colour_check_$c/report.json" ] || $D eval "$RUN/model.pt" "$OUT/ycbv_simtest.h5" \
     --out "$REP/simtest_colour_check_$c" --icp --quiet --set geometry.colour_check=$c
 done
+# 6c. the sampling seed (RESULTS.md): which points stage 1 sees and stage 2's RANSAC draws, seeds 0-7, for the
+#     default inference, ICP before its half turns and a stage-1 centre from 2 votes; mean and range of each
+for a in "default:" "before_half_turns:$OLD" "min_votes_2:$G.min_votes=2"; do
+  name=${a%%:*}; sets=()
+  for kv in ${a#*:}; do sets+=(--set "$kv"); done
+  for seed in 0 1 2 3 4 5 6 7; do
+    [ -f "$REP/seeds/$name-$seed/report.json" ] || $D eval "$RUN/model.pt" "$OUT/ycbv_real.h5" \
+      --out "$REP/seeds/$name-$seed" --icp --min-visib 0 --quiet --seed $seed "${sets[@]}"
+  done
+done
+.venv/bin/python examples/ycbv_real/seeds.py "$REP/seeds"
 # 7. stage 2's colour input (RESULTS.md, the tone curve and colour ranks): stage 2 alone, 3000 steps, `camera`
 #    against `camera_tone` and `rank`, two seeds each, beside the run's stage 1 (a run folder holding the run's
 #    finished stage 1 and its own two_stage.yaml, resumed: a finished stage is not trained again); about 8 minutes
