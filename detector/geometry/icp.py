@@ -32,6 +32,10 @@ def icp_refine(scene_points: np.ndarray, model_points: np.ndarray, R: np.ndarray
     # lazy: open3d, as in make_model_cloud
     import open3d as o3d
 
+    # one thread inside each ICP: open3d's threaded sums of the normal equations add in a varying order, so the same
+    # start could end a few hundredths of a millimetre apart from run to run, enough to flip which start fits best
+    # (refine_pose runs the starts side by side instead)
+    o3d.utility.set_max_threads(1)
     reg = o3d.pipelines.registration
     target = model_cloud if model_cloud is not None else make_model_cloud(model_points)
     source = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(scene_points, np.float64)))
