@@ -13,7 +13,7 @@ import torch
 from scipy.spatial import cKDTree
 
 from argen.h5 import LabelFile
-from detector.checkpoint import Checkpoint, build_model
+from detector.checkpoint import Checkpoint, build_model, trained_plane_keep
 from detector.geometry.types import GeometryConfig, ObjectInfo
 from detector.geometry.voting import detect
 from detector.stage1.predictor import network_predictor
@@ -33,7 +33,7 @@ def main() -> None:
     payload = payload.get("stage1", payload)
     model, cfg = build_model(payload, a.ckpt, "cpu")
     ck = Checkpoint(model.eval(), cfg, payload["class_ids"], payload["objects"], payload["num_points"],
-                    payload["step"], {}, payload["normalisation"])
+                    payload["step"], {}, payload["normalisation"], plane_keep=trained_plane_keep(payload))
     pred = network_predictor(ck)
     objs = ObjectInfo.from_table(payload["objects"])
     errs, found, total = [], 0, 0

@@ -29,7 +29,9 @@ class Checkpoint:
     normalisation: the network input's colour normalisation (``detector.data.augment.input_normalisation``: with
     "colour": "none" the network has no colour input);
     stage2_net: a two-stage model's crop network (stage 2) or None; stage2: its part of the file (configs, classes)
-    without the weights; geometry_config: inference settings stored with the model ({} for none).
+    without the weights; geometry_config: inference settings stored with the model ({} for none); plane_keep: the
+    share of a frame's dominant plane that the network's sampling keeps, as it was trained (1 for models trained
+    before that setting).
     """
 
     model: Any
@@ -43,6 +45,7 @@ class Checkpoint:
     stage2_net: Any = None
     stage2: dict | None = None
     geometry_config: dict = field(default_factory=dict)
+    plane_keep: float = 1.0
 
 
 def build_model(payload: dict, path: Path, device: str | torch.device):
@@ -80,7 +83,15 @@ def load_checkpoint(path: str | Path, device: str | torch.device = "cpu") -> Che
                       objects=payload["objects"], num_points=int(payload["num_points"]), step=int(payload["step"]),
                       extra=payload.get("extra") or {}, normalisation=payload.get("normalisation") or {},
                       stage2_net=stage2_net, stage2=stage2,
-                      geometry_config=dict(extra_top.get("geometry_config") or {}))
+                      geometry_config=dict(extra_top.get("geometry_config") or {}),
+                      plane_keep=trained_plane_keep(payload))
+
+
+def trained_plane_keep(payload: dict) -> float:
+    """The share of a frame's dominant plane that a network's sampling kept in training (its ``plane_keep``
+    setting, :mod:`detector.data.plane`), from its checkpoint dict (a stage-1 or single-network payload); 1 for
+    networks trained before that setting."""
+    return float(((payload.get("extra") or {}).get("train_config") or {}).get("plane_keep", 1.0))
 
 
 def save_two_stage(path: str | Path, stage1: dict, stage2: dict, extra: dict | None = None) -> Path:

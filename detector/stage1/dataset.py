@@ -20,6 +20,7 @@ import torch
 
 from detector.data.augment import augment, input_normalisation, normalise_features
 from detector.data.frames import FrameSource
+from detector.data.plane import thin_plane_rows
 from detector.errors import DetectorError
 from detector.stage1.ops import precompute_indices
 
@@ -35,6 +36,20 @@ def sample_rows(num_rows: int, num_points: int, rng: np.random.Generator) -> np.
         return np.sort(rng.choice(num_rows, num_points, replace=False)).astype(np.int64)
     extra = rng.choice(num_rows, num_points - num_rows, replace=True)
     return np.concatenate([np.arange(num_rows), extra]).astype(np.int64)
+
+
+def frame_rows(features: np.ndarray, num_points: int, rng: np.random.Generator, plane_keep: float = 1.0
+               ) -> np.ndarray:
+    """The rows of a frame that stage 1 sees: :func:`sample_rows` over the frame's points after all but a
+    ``plane_keep`` share of its dominant plane's points are set aside (:func:`detector.data.plane.thin_plane_rows`;
+    1 keeps them all and draws exactly as :func:`sample_rows` alone).
+
+    features: (N, 9) (only the xyz columns, metres, are read). Returns (num_points,) int64 rows of ``features``.
+    """
+    if plane_keep >= 1.0:
+        return sample_rows(len(features), num_points, rng)
+    pool = thin_plane_rows(np.asarray(features)[:, :3], num_points, plane_keep, rng)
+    return pool[sample_rows(len(pool), num_points, rng)]
 
 
 def class_index(semantic: np.ndarray, class_ids: Sequence[int]) -> np.ndarray:
@@ -71,8 +86,10 @@ class PointDataset(FrameSource):
     """
 
     def __init__(self, path: str | Path, model_cfg, num_points: int, augment: bool = False, seed: int = 0,
-                 class_ids: Sequence[int] | None = None, precompute: bool = True, colour: str = "light"):
+                 class_ids: Sequence[int] | None = None, precompute: bool = True, colour: str = "light",
+                 plane_keep: float = 1.0):
         self.model_cfg = model_cfg
+        self.plane_keep = float(plane_keep)
         self.colour = colour
         self.normalisation = input_normalisation(colour)
         self.specs = list(model_cfg.sampling_specs())
@@ -85,7 +102,7 @@ class PointDataset(FrameSource):
 
     def __getitem__(self, key: int | tuple[int, int]) -> dict[str, torch.Tensor]:
         frame, rng, index = self.read(key)
-        rows = sample_rows(len(frame.features), self.num_points, rng)
+        rows = frame_rows(frame.features, self.num_points, rng, self.plane_keep)
         feats = np.asarray(frame.features, dtype=np.float32)[rows]
         cps = np.asarray(frame.control_points, dtype=np.float32)[rows]
         cls = class_index(np.asarray(frame.semantic)[rows], self.class_ids)
@@ -101,18 +118,20 @@ class PointDataset(FrameSource):
 
 
 def inference_batch(features: np.ndarray, model_cfg, num_points: int, seed: int = 0,
-                    normalisation: dict[str, float] | None = None, precompute: bool = True) -> dict[str, torch.Tensor]:
+                    normalisation: dict[str, float] | None = None, precompute: bool = True,
+                    plane_keep: float = 1.0) -> dict[str, torch.Tensor]:
     """A batch of one frame for prediction: the same sampling as training, without augmentation.
 
     features: (N, 9) float32 [X, Y, Z, R, G, B, Nx, Ny, Nz], metres and colour in [0, 1].
     Returns ``features`` (1, num_points, 9), the sampling indices (each with a batch dimension) and
     ``point_index`` (num_points,) int64: the input row of each network point. ``precompute=False`` leaves
-    the indices out (for a model that computes them on the GPU).
+    the indices out (for a model that computes them on the GPU); ``plane_keep``: as the model was trained
+    (:func:`frame_rows`).
     """
     feats = np.asarray(features, dtype=np.float32)
     if feats.ndim != 2 or feats.shape[1] != 9:
         raise DetectorError(f"features must have shape (N, 9), got {feats.shape}")
-    rows = sample_rows(len(feats), int(num_points), np.random.default_rng(seed))
+    rows = frame_rows(feats, int(num_points), np.random.default_rng(seed), plane_keep)
     sel = feats[rows]
     specs = list(model_cfg.sampling_specs())
     batch = {k: v[None] for k, v in sampling_indices(sel[:, :3], specs).items()} if precompute else {}

@@ -71,7 +71,8 @@ def network_predictor(checkpoint, seed: int = 0, device: str | None = None) -> P
     def predict(frame) -> Predictions:
         t0 = time.perf_counter()
         batch = inference_batch(frame.features, checkpoint.model_config, checkpoint.num_points, seed,
-                                normalisation=checkpoint.normalisation or None, precompute=dev.type == "cpu")
+                                normalisation=checkpoint.normalisation or None, precompute=dev.type == "cpu",
+                                plane_keep=checkpoint.plane_keep)
         feats = batch.pop("features").to(dev)
         rows = batch.pop("point_index").numpy()
         indices = {k: v.to(dev) for k, v in batch.items()}

@@ -70,6 +70,7 @@ class TrainConfig:
     preset: str = "cpu"  # model preset of detector.stage1.network.preset: "paper" or "cpu"
     model: dict = field(default_factory=dict)  # ModelConfig field overrides
     num_points: int = 4096  # points sampled per frame (>= the first stage's keypoints)
+    plane_keep: float = 1.0  # share of the frame's dominant plane that sampling keeps (detector.data.plane); 1 = all
     steps: int | None = 2000  # optimiser steps in all (segmentation pre-training included)
     epochs: float | None = None  # instead of steps: passes over the training frames
     batch_size: int = 4
@@ -149,6 +150,7 @@ def validate_config(cfg: TrainConfig) -> None:
         ((cfg.steps is None) != (cfg.epochs is None), "give either steps or epochs"),
         (cfg.batch_size >= 1, "batch_size must be at least 1"),
         (cfg.num_points >= 1, "num_points must be at least 1"),
+        (0.0 <= cfg.plane_keep <= 1.0, "plane_keep must be in [0, 1]"),
         (cfg.lr > 0 and cfg.weight_decay >= 0, "lr must be positive and weight_decay non-negative"),
         (cfg.schedule in ("cosine", "onecycle", "constant"), "schedule must be cosine, onecycle or constant"),
         (cfg.warmup_steps >= 0 and 0 <= cfg.min_lr_ratio <= 1, "warmup_steps >= 0 and min_lr_ratio in [0, 1]"),
@@ -282,11 +284,12 @@ def _train(cfg: TrainConfig, train_path: str | Path, out_dir: str | Path, val_pa
     use_indices = cfg.indices == "loader" or (cfg.indices == "auto" and device.type == "cpu")
     model_cfg = build_model_config(cfg)
     ds = PointDataset(train_path, model_cfg, cfg.num_points, augment=cfg.augment, seed=cfg.seed, colour=cfg.colour,
-                      class_ids=cfg.class_ids, precompute=use_indices)
+                      class_ids=cfg.class_ids, precompute=use_indices, plane_keep=cfg.plane_keep)
     val_ds = None
     if val_path is not None and ctx.is_main:
         val_ds = PointDataset(val_path, model_cfg, cfg.num_points, augment=False, seed=cfg.seed,
-                              class_ids=ds.class_ids, precompute=use_indices, colour=cfg.colour)
+                              class_ids=ds.class_ids, precompute=use_indices, colour=cfg.colour,
+                              plane_keep=cfg.plane_keep)
     total = total_steps(cfg, len(ds))
     devices = [device] if device.type == "cuda" else []
     with torch.random.fork_rng(devices=devices):

@@ -136,3 +136,24 @@ if [ "${STAGE1_COLOUR:-0}" = 1 ]; then
     .venv/bin/python bench/probe_colour.py "$r/model.pt" "$OUT/lm_val.h5" --change none darker warm --stage stage1
   done
 fi
+
+# 8. stage 1 with the frame's dominant plane thinned (`stage1.plane_keep=0.1`, RESULTS.md: tried, not kept for lm8):
+#    stage 1 alone trained again beside runs/lm8's stage 2, scored on both test and both validation captures, on the
+#    stage-1 probe and on the real frames without LineMOD objects; about 18 minutes. Only with STAGE1_PLANE=1.
+if [ "${STAGE1_PLANE:-0}" = 1 ]; then
+  r=runs/lm8-s1-plane
+  if [ ! -f "$r/model.pt" ]; then
+    [ -d "$r/stage2" ] || { mkdir -p "$r" && cp -r runs/lm8/stage2 "$r/"; }
+    printf 'stage1:\n  plane_keep: 0.1\nstage2:\n  keep_every: 1300\n' > "$r/two_stage.yaml"
+    $D train "$OUT/lm_train.h5" --out "$r" --resume --quiet
+  fi
+  for d in lm_test lchf_test lm_val lchf_val; do
+    [ -f "reports/lm8-s1-plane-$d/report.json" ] || \
+      $D eval "$r/model.pt" "$OUT/$d.h5" --out "reports/lm8-s1-plane-$d" --icp --quiet
+  done
+  for m in runs/lm8 "$r"; do
+    .venv/bin/python bench/probe_stage1.py "$m/model.pt" "$OUT/lm_test.h5" --frames 100
+    [ -d "$R/ycbv_real/test/000000" ] && \
+      .venv/bin/python bench/false_alarms.py "$m/model.pt" "$R"/ycbv_real/test/000000/0000{01..10}
+  done
+fi
