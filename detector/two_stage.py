@@ -24,7 +24,7 @@ from detector.config import config_to_dict, load_preset, load_yaml
 from detector.errors import DetectorError
 from detector.data.frames import FrameSource
 from detector.geometry.types import GeometryConfig
-from detector.stage1.train import RESUME_FREE_KEYS, make_config, train
+from detector.stage1.train import RESUME_FREE_KEYS, make_config, saved_run_settings, train
 from detector.stage2.poser import PoserConfig
 from detector.stage2.train import STAGE2_RESUME_FREE_KEYS, load_stage2_config, saved_settings, train_stage2
 from detector.training.checkpoint_file import read_checkpoint
@@ -119,6 +119,7 @@ def train_two_stage(cfg: TwoStageConfig, train_path: str | Path, out_dir: str | 
     d1, d2 = stage_dirs(out_dir)
     done1, saved1 = _progress(d1 / "last.pt", "stage1")
     done2, saved2 = _progress(d2 / "last.pt", "stage2")
+    saved1 = saved_run_settings(saved1) if saved1 is not None else None
     if resume:  # a run keeps the settings it started with where its two_stage.yaml and --set name none
         cfg = replace(cfg, stage1=run_settings(saved1, s1, cfg.stage1, RESUME_FREE_KEYS),
                       stage2=run_settings(saved_settings(saved2) if saved2 is not None else None, s2, cfg.stage2,

@@ -101,3 +101,22 @@ def test_a_model_trained_with_thinning_samples_the_same_way_at_inference(h5_path
     # training items are rows of the frame with their own labels, as without thinning
     item = ds[1]
     assert item["cls"].shape == (1024,) and int((item["cls"] > 0).sum()) > int((~table[plain_rows]).sum())
+
+
+def test_a_run_saved_before_the_setting_existed_resumes_as_it_was_trained(h5_path, tmp_path):
+    """Runs saved before ``plane_keep`` have no such setting: they resume (and a two-stage run folder with them
+    resumes) as runs of every point, and refuse another value."""
+    from detector.errors import DetectorError
+
+    train(tiny_config(steps=1), h5_path, tmp_path / "r", progress=False)
+    last = tmp_path / "r" / "last.pt"
+    payload = torch.load(last, map_location="cpu", weights_only=False)
+    del payload["train_state"]["config"]["plane_keep"]  # as written before the setting existed
+    torch.save(payload, last)
+    train(tiny_config(steps=2), h5_path, tmp_path / "r", progress=False, resume=True)
+    assert load_checkpoint(last).step == 2 and load_checkpoint(last).plane_keep == 1.0
+    payload = torch.load(last, map_location="cpu", weights_only=False)
+    del payload["train_state"]["config"]["plane_keep"]
+    torch.save(payload, last)
+    with pytest.raises(DetectorError, match="plane_keep"):
+        train(tiny_config(steps=3, plane_keep=0.5), h5_path, tmp_path / "r", progress=False, resume=True)

@@ -59,6 +59,10 @@ LABEL_KEYS = ("features", "cls", "instance", "control_points", "frame", "point_i
 RESUME_FREE_KEYS = frozenset({"steps", "epochs", "checkpoint_every", "val_every", "val_frames", "num_workers", "device",
                               "indices"})
 
+#: Settings added to TrainConfig after runs were first saved, with the value that reproduces a run saved without
+#: them (:func:`saved_run_settings`): such a run resumes as it was trained.
+ADDED_SETTINGS = {"plane_keep": 1.0}
+
 METRIC_FIELDS = ["step", "epoch", "phase", "loss", "cls", "offset", "conf", "lr", "acc", "steps_per_s",
                  "val_loss", "val_acc"]
 
@@ -304,6 +308,7 @@ def _train(cfg: TrainConfig, train_path: str | Path, out_dir: str | Path, val_pa
             if "optimizer" not in state:
                 raise DetectorError(f"{last_path} holds no training state to resume from")
             start, best, val = int(payload["step"]), state.get("best_val_loss"), state.get("val")
+            state = {**state, "config": saved_run_settings(state["config"])}
             restore_state(net, opt, sched, payload["model_state"], state, cfg, last_path, device, start, total,
                           RESUME_FREE_KEYS)
         model = net
@@ -383,3 +388,9 @@ def _train(cfg: TrainConfig, train_path: str | Path, out_dir: str | Path, val_pa
     last = {k: float(np.mean([r[k] for r in recent])) for k in ("loss", "cls", "offset", "conf", "acc")} if recent else {}
     return TrainSummary(out_dir=out_dir, start_step=start, steps=step, seconds=time.perf_counter() - t0, last=last,
                         val=val, best_val_loss=best, checkpoint=last_path)
+
+
+def saved_run_settings(saved: dict) -> dict:
+    """A run's saved settings (a config dict) as this code writes them: a setting added since the run was saved
+    (:data:`ADDED_SETTINGS`) takes the value the run was trained with."""
+    return {**ADDED_SETTINGS, **saved}
