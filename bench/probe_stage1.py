@@ -13,11 +13,10 @@ import torch
 from scipy.spatial import cKDTree
 
 from argen.h5 import LabelFile
-from detector.checkpoint import Checkpoint, build_model, trained_plane_keep
+from detector.checkpoint import load_checkpoint
 from detector.geometry.types import GeometryConfig, ObjectInfo
 from detector.geometry.voting import detect
 from detector.stage1.predictor import network_predictor
-from detector.training.checkpoint_file import read_checkpoint
 
 
 def main() -> None:
@@ -29,13 +28,9 @@ def main() -> None:
     ap.add_argument("--min-visib", type=float, default=0.1)
     a = ap.parse_args()
     torch.set_num_threads(1)
-    payload = read_checkpoint(a.ckpt)
-    payload = payload.get("stage1", payload)
-    model, cfg = build_model(payload, a.ckpt, "cpu")
-    ck = Checkpoint(model.eval(), cfg, payload["class_ids"], payload["objects"], payload["num_points"],
-                    payload["step"], {}, payload["normalisation"], plane_keep=trained_plane_keep(payload))
+    ck = load_checkpoint(a.ckpt)  # a stage-1 run's last.pt or a two-stage model.pt: its stage 1 is the model
     pred = network_predictor(ck)
-    objs = ObjectInfo.from_table(payload["objects"])
+    objs = ObjectInfo.from_table(ck.objects)
     errs, found, total = [], 0, 0
     points = {}  # obj_id: [instances, sampled points, labelled right, centre found]
     false_fg = sampled = 0

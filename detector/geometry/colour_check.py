@@ -61,7 +61,8 @@ def colour_checked(detections: list, cloud: np.ndarray, colours: np.ndarray, obj
     trimmed fit to those points (:func:`detector.geometry.icp.fit_rms`) is within ``FIT_SLACK`` x diameter of the
     best; colours are compared within twice the support distance. With ``icp``, a turned pose is refined by ICP from
     there alone, on the points ICP takes (:func:`detector.geometry.icp.refine_pose`, :func:`icp_points`; a start
-    turned half way could undo the choice), and a two-stage detection's score recomputed (its support, all points). Adds "colour_check" seconds."""
+    turned half way could undo the choice), and a two-stage detection's score recomputed (its support, all points).
+    Adds "colour_check" seconds."""
     t0 = time.perf_counter()
     out = list(detections)
     cloud, colours = np.asarray(cloud, np.float64), np.asarray(colours, np.float64)

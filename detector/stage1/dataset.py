@@ -46,8 +46,6 @@ def frame_rows(features: np.ndarray, num_points: int, rng: np.random.Generator, 
 
     features: (N, 9) (only the xyz columns, metres, are read). Returns (num_points,) int64 rows of ``features``.
     """
-    if plane_keep >= 1.0:
-        return sample_rows(len(features), num_points, rng)
     pool = thin_plane_rows(np.asarray(features)[:, :3], num_points, plane_keep, rng)
     return pool[sample_rows(len(pool), num_points, rng)]
 
