@@ -79,6 +79,19 @@ def estimate(preds: Predictions, objects: ObjectInfo, cfg: GeometryConfig, timin
             [d for d in refined if d.score >= cfg.min_score] if refined is not None else None)
 
 
+def colour_readers(ckpt, objects: ObjectInfo, cfg: GeometryConfig) -> list[str]:
+    """What of a model reads a frame's colours: "stage 1" and "stage 2" where their networks take colour input,
+    "the colour check" where it is on (``cfg.colour_check``) and an object carries a print to check
+    (``objects.texture``). [] for a model that works on depth alone. ckpt: a loaded checkpoint
+    (:func:`detector.checkpoint.load_checkpoint`)."""
+    out = [] if ckpt.normalisation.get("colour") == "none" else ["stage 1"]
+    if ckpt.stage2 is not None and (ckpt.stage2.get("normalisation") or {}).get("colour") != "none":
+        out.append("stage 2")
+    if cfg.colour_check and objects.texture:
+        out.append("the colour check")
+    return out
+
+
 def checkpoint_max_depth(ckpt, given: float | None = None) -> float | None:
     """The working volume a frame's points are taken from, metres along z: ``given`` (``--max-depth``), else the
     one the model's stage 1 was trained in (its label file's ``max_depth``), else None (every point). A real frame's

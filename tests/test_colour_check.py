@@ -124,3 +124,78 @@ def test_a_box_posed_the_wrong_way_round_is_turned_back_under_another_cameras_co
     assert all(np.allclose(a.R, b.R) for a, b in zip(same, dets))
     no_pts = [Detection(3, 0.9, Rk[1], tk[1], 10, np.zeros((9, 3)), np.arange(3))]
     assert np.allclose(colour_checked(no_pts, cloud, colours, info, cfg, icp=icp)[0].R, Rk[1])
+
+
+def test_a_stage_2_without_colour_learns_the_printed_box_up_to_its_shape_turns():
+    """A crop network that sees no colour cannot tell the turns apart that only the print breaks: its training
+    targets include the coordinates under each turn (identity first), every target set maps the box onto itself,
+    and the loss of a prediction made in the turned pose is zero for it, where a colour-input stage 2 is taught the
+    one pose (an object listed symmetric keeps its own symmetries)."""
+    import torch
+
+    from detector.stage2.crops import shape_only_symmetries, symmetry_targets
+    from detector.stage2.network import crop_loss
+
+    obj = box_object()
+    turns = shape_symmetries(obj)
+    S = shape_only_symmetries(np.eye(4)[None], turns)
+    assert S.shape == (4, 4, 4) and np.allclose(S[0], np.eye(4))
+    v = np.asarray(obj.mesh.vertices)
+    for T in S:
+        moved = v @ T[:3, :3].T + T[:3, 3]
+        assert np.abs(moved[:, None] - v[None]).sum(-1).min(axis=1).max() < 1e-6
+    own = np.stack([np.eye(4), np.diag([-1.0, -1.0, 1.0, 1.0])])
+    assert np.allclose(shape_only_symmetries(own, np.zeros((0, 4, 4))), own)
+    dia = obj.diameter
+    x = np.random.default_rng(0).uniform(-0.5, 0.5, (64, 3)) * np.array(EXTENTS) / dia  # model coordinates, diameters
+    turned = symmetry_targets(x, turns[1:2], dia)[0]  # what the points read in the box turned half way
+    pred = {"fg_logit": torch.full((1, 64), 10.0), "coords": torch.from_numpy(turned[None])}
+    fg = torch.ones(1, 64)
+    for sym, zero in ((S, True), (np.eye(4)[None].astype(np.float32), False)):
+        coords = torch.from_numpy(symmetry_targets(x, sym, dia)[None])
+        coord = float(crop_loss(pred, fg, coords, torch.ones(1, len(sym), dtype=torch.bool))[1]["coord"])
+        assert (coord < 1e-9) == zero, coord
+
+
+def test_older_stage_2_runs_resume_with_the_symmetries_they_were_taught():
+    """A stage-2 run saved before ``crop.shape_turns`` existed reads it as it was trained: a colour-free one without
+    the turns (it was taught its own symmetries only), any other with the default; and a label file's printed box
+    gets the turns in a colour-free dataset only while the setting is on."""
+    from dataclasses import asdict
+
+    from detector.stage2.crops import CropConfig
+    from detector.stage2.dataset import crop_symmetries
+    from detector.stage2.train import Stage2TrainConfig, saved_settings
+
+    for colour, turns in (("none", False), ("light", True)):
+        old = asdict(Stage2TrainConfig())
+        del old["crop"]["shape_turns"]
+        old["crop"]["colour"] = colour
+        assert saved_settings(old)["crop"]["shape_turns"] is turns
+        assert saved_settings(old)["crop"]["colour"] == colour
+    table = object_table_dict(object_table([box_object()]))
+    sizes = {(c, t): len(crop_symmetries(table, CropConfig(colour=c, shape_turns=t))[3])
+             for c in ("none", "camera") for t in (True, False)}
+    assert sizes == {("none", True): 4, ("none", False): 1, ("camera", True): 1, ("camera", False): 1}
+
+
+def test_what_reads_colour_is_each_colour_input_and_the_check_where_a_print_is_carried():
+    """detector predict warns about a frame without colour when anything of the model reads colour: either
+    network's colour input, or the colour check for a model whose objects carry a print."""
+    from types import SimpleNamespace
+
+    from detector.infer import colour_readers
+
+    def model(s1, s2):
+        return SimpleNamespace(normalisation={"colour": s1}, stage2={"normalisation": {"colour": s2}})
+
+    printed = ObjectInfo.from_table(object_table_dict(object_table([box_object()])))
+    plain = ObjectInfo.from_table(object_table_dict(object_table([box_object(rgb=np.tile([[150] * 3], (6, 1)))])))
+    on, off = GeometryConfig(colour_check=True), GeometryConfig(colour_check=False)
+    assert colour_readers(model("none", "none"), printed, on) == ["the colour check"]
+    assert colour_readers(model("none", "none"), printed, off) == []
+    assert colour_readers(model("none", "none"), plain, on) == []
+    assert colour_readers(model("grey_world", "light"), plain, on) == ["stage 1", "stage 2"]
+    assert colour_readers(model("none", "camera"), printed, on) == ["stage 2", "the colour check"]
+    single = SimpleNamespace(normalisation={"colour": "light"}, stage2=None)
+    assert colour_readers(single, plain, off) == ["stage 1"]

@@ -104,7 +104,7 @@ def register(app: typer.Typer) -> None:
         # lazy: torch and open3d load in seconds; `detector --help` and the other commands do not need them
         from detector.checkpoint import load_checkpoint
         from detector.infer import (checkpoint_geometry_config, checkpoint_max_depth, checkpoint_objects,
-                                    checkpoint_poser)
+                                    checkpoint_poser, colour_readers)
         from detector.predict import load_input, predict
         from detector.stage1.predictor import network_predictor
 
@@ -112,10 +112,13 @@ def register(app: typer.Typer) -> None:
         cfg = checkpoint_geometry_config(ckpt, tau, icp, min_score, sets)
         depth = checkpoint_max_depth(ckpt, max_depth)
         inp = load_input(input, K=K, depth_scale=depth_scale, camera=camera, rgb=rgb, seed=seed, max_depth=depth)
-        if ckpt.normalisation.get("colour") != "none" and not inp.features[:, 3:6].any():
-            typer.echo(f"detector: warning: {checkpoint.name} sees colour and {input} has none (give the colour "
-                       "image with --rgb): it finds little without it (RESULTS.md)", err=True)
         objects, names = checkpoint_objects(ckpt)
+        readers = colour_readers(ckpt, objects, cfg)
+        if readers and not inp.features[:, 3:6].any():
+            cost = ("it finds little without it (RESULTS.md)" if readers[0].startswith("stage") else
+                    "without it a printed object's way round is left unchecked")
+            typer.echo(f"detector: warning: {checkpoint.name} reads colour ({', '.join(readers)}) and {input} has "
+                       f"none (give the colour image with --rgb): {cost}", err=True)
         res = predict(network_predictor(ckpt, seed), inp, objects, out, cfg, names,
                       poser=checkpoint_poser(ckpt, objects, device, seed), max_depth=depth)
         for d in res["detections"]:

@@ -42,7 +42,9 @@ class CropConfig:
     colour input); neighbour: augmentation puts, with this chance, a copy of the instance's own points beside it as
     background (:func:`add_neighbour`), at a lateral distance of ``neighbour_offset`` (min, max) diameters between
     the centres: scenes such as LC-HF hold several instances of one object side by side, and a crop around one of
-    them must not take its neighbour for it.
+    them must not take its neighbour for it; shape_turns: with colour "none", an object's coordinates are also
+    taught under the turns that map its shape onto itself and that only its print breaks
+    (:func:`shape_only_symmetries`; the colour check then chooses among them), false: under its own symmetries only.
     """
 
     radius: float = 0.7
@@ -56,6 +58,7 @@ class CropConfig:
     colour: str = "light"
     neighbour: float = 0.0
     neighbour_offset: tuple[float, float] = (0.5, 1.0)
+    shape_turns: bool = True
 
     def to_dict(self) -> dict:
         return dict(self.__dict__)
@@ -115,6 +118,21 @@ def symmetry_targets(coords: np.ndarray, sym_transforms: np.ndarray, diameter: f
     x = np.asarray(coords, np.float64) * diameter
     out = np.einsum("sij,nj->sni", inv[:, :3, :3], x) + inv[:, None, :3, 3]
     return (out / diameter).astype(np.float32)
+
+
+def shape_only_symmetries(sym_transforms: np.ndarray, shape_turns: np.ndarray) -> np.ndarray:
+    """The symmetries a stage 2 without colour input is trained under: the object's own, each followed by every turn
+    that maps its shape onto itself but that only its print breaks (``argen.models.texture.shape_symmetries``). A
+    network that sees geometry only cannot tell those turns apart, so it is not pulled toward their mean; which way
+    round the object lies is then the colour check's to choose (:mod:`detector.geometry.colour_check`).
+
+    sym_transforms: (S,4,4) model frame, metres, identity first; shape_turns: (T,4,4), not the identity (T may be 0).
+    Returns (S*(T+1),4,4) float32, identity first.
+    """
+    S = np.asarray(sym_transforms, np.float64).reshape(-1, 4, 4)
+    turns = np.asarray(shape_turns, np.float64).reshape(-1, 4, 4)
+    both = np.concatenate([np.eye(4)[None], turns])
+    return np.einsum("sij,tjk->stik", S, both).reshape(-1, 4, 4).astype(np.float32)
 
 
 @dataclass

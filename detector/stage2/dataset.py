@@ -11,7 +11,7 @@ import torch
 
 from detector.data.augment import input_normalisation
 from detector.data.frames import FrameSource
-from detector.stage2.crops import CropFrame, crop_region, training_crop
+from detector.stage2.crops import CropFrame, crop_region, shape_only_symmetries, training_crop
 
 
 class CropDataset(FrameSource):
@@ -19,9 +19,9 @@ class CropDataset(FrameSource):
 
     ``dataset[(epoch, i)]`` is frame ``i``'s crops: ``features`` (c, n, 9), ``cls`` (c,) int64 class index
     (``class_ids[cls]`` is the object id), ``fg`` (c, n) float32, ``coords`` (c, S, n, 3) float32 model coordinates
-    in diameters under each of the S symmetries (padded to the most any object has), ``sym_mask`` (c, S) bool and
-    ``frame`` (c,) int64. An instance is used when its object is in ``class_ids``, its visible fraction and point
-    count reach the crop config's minimums and its crop holds enough points; c may be 0.
+    in diameters under each of the S symmetries of :func:`crop_symmetries` (padded to the most any object has),
+    ``sym_mask`` (c, S) bool and ``frame`` (c,) int64. An instance is used when its object is in ``class_ids``, its
+    visible fraction and point count reach the crop config's minimums and its crop holds enough points; c may be 0.
     Items are pure functions of (seed, epoch, frame). Batches join items with :func:`collate_crops`.
 
     cache_mb: each process keeps the :func:`detector.stage2.crops.crop_region` of the frames it reads, up to this many MB
@@ -36,7 +36,7 @@ class CropDataset(FrameSource):
         self.crop_cfg = crop_cfg
         self.normalisation = input_normalisation(crop_cfg.colour)  # the network input of every crop
         ids = self.objects["ids"]
-        self.sym = {int(i): np.asarray(s, np.float32) for i, s in zip(ids, self.objects["sym_transforms"])}
+        self.sym = crop_symmetries(self.objects, crop_cfg)
         self.diameters = {int(i): float(d) for i, d in zip(ids, self.objects["diameters"])}
         self.max_sym = max(len(self.sym[c]) for c in self.class_ids)
         self._crop_diameters = {c: self.diameters[c] for c in self.class_ids}  # the objects whose crops are cut
@@ -86,6 +86,20 @@ class CropDataset(FrameSource):
         return {"features": torch.from_numpy(feats), "cls": torch.tensor([c for c, _ in crops], dtype=torch.int64),
                 "fg": torch.from_numpy(fg), "coords": torch.from_numpy(coords), "sym_mask": torch.from_numpy(mask),
                 "frame": torch.full((len(crops),), index, dtype=torch.int64)}
+
+
+def crop_symmetries(objects: dict, crop_cfg) -> dict[int, np.ndarray]:
+    """{object id: (S,4,4) float32}: the model-frame symmetries stage 2's coordinates are taught under (identity
+    first). objects: a label file's object table as :func:`detector.data.frames.object_table_dict` gives it. Each
+    object's own; for a stage 2 without colour input (``crop_cfg.colour`` "none", with ``crop_cfg.shape_turns``)
+    also the turns that only its print breaks (:func:`detector.stage2.crops.shape_only_symmetries`), which
+    geometry alone cannot tell apart."""
+    ids = [int(i) for i in objects["ids"]]
+    sym = {i: np.asarray(s, np.float32).reshape(-1, 4, 4) for i, s in zip(ids, objects["sym_transforms"])}
+    turns = objects.get("shape_symmetries") or []
+    if crop_cfg.colour == "none" and crop_cfg.shape_turns and len(turns) == len(ids):
+        sym = {i: shape_only_symmetries(sym[i], t) for i, t in zip(ids, turns)}
+    return sym
 
 
 def collate_crops(items: Sequence[dict[str, torch.Tensor]]) -> dict[str, torch.Tensor]:

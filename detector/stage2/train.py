@@ -182,12 +182,18 @@ def train_stage2(cfg: Stage2TrainConfig, train_path: str | Path, out_dir: str | 
 
 def saved_settings(saved: dict) -> dict:
     """A stage-2 run's saved settings (a config dict) as this code writes them: runs started before
-    ``net.norm_before_max`` was removed store it as false, which is the one network there is now."""
+    ``net.norm_before_max`` was removed store it as false, which is the one network there is now; runs started
+    before ``crop.shape_turns`` existed get the value that reproduces them (false for a colour-free stage 2, which
+    was taught its objects' own symmetries only; the default for any other, which the setting does not touch)."""
+    out = dict(saved)
     net = dict(saved.get("net") or {})
     if net.get("norm_before_max") is False:
         del net["norm_before_max"]
-        return {**saved, "net": net}
-    return saved
+        out["net"] = net
+    crop = saved.get("crop")
+    if isinstance(crop, dict) and "shape_turns" not in crop:
+        out["crop"] = {**crop, "shape_turns": crop.get("colour") != "none"}
+    return out
 
 
 def load_stage2_config(data: dict | None, overrides: dict | None = None) -> Stage2TrainConfig:
