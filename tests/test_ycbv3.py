@@ -4,7 +4,6 @@ the real mug."""
 
 from __future__ import annotations
 
-from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -41,26 +40,55 @@ def test_shipped_model_finds_the_objects_in_the_real_frames(real_labels, tmp_pat
     cfg = checkpoint_geometry_config(ck, None, True)
     s = evaluate(network_predictor(ck), real_labels, tmp_path / "rep", icp=True, cfg=cfg, min_visib=0.0,
                  poser=checkpoint_poser(ck, objects))
-    errs = np.array([np.inf if r["icp"] is None else r["icp"] / r["diameter"] for r in s["instances"]])
-    assert len(errs) == 30
-    # the shipped model (run K, seed 0) gets the foam brick right in 10 of 10 frames and the gelatin box in 7 (the
-    # box's way round chosen by its print, geometry.colour_check; the mug's handle is hidden: RESULTS.md); a model
-    # that finds nothing, or finds the objects but not their orientation, gets none
-    assert np.sum(errs < 0.1) >= 13, np.round(errs, 3)
     box = np.array([r["obj_id"] == 8 for r in s["instances"]])
-    assert np.sum(errs[box] < 0.1) >= 6, np.round(errs[box], 3)
+    assert len(box) == 30
+    # the shipped model (run L, seed 0) gets the foam brick right in 9 and 10 of 10 frames without and with ICP and
+    # the gelatin box in 10 and 9 (the box's way round chosen by its print, geometry.colour_check; the mug's handle
+    # is hidden: RESULTS.md); a model that finds nothing, or finds the objects but not their orientation, gets none,
+    # and the previous model (stage 2 with colour) got no gelatin box within 10 % before ICP
+    for key in ("noicp", "icp"):
+        errs = np.array([np.inf if r[key] is None else r[key] / r["diameter"] for r in s["instances"]])
+        assert np.sum(errs < 0.1) >= 16, (key, np.round(errs, 3))
+        assert np.sum(errs[box] < 0.1) >= 7, (key, np.round(errs[box], 3))
 
 
-def test_the_print_turns_the_real_gelatin_box(real_labels, tmp_path):
-    """Without the colour check the same model turns the gelatin box the wrong way in 9 of 10 frames (RESULTS.md):
-    what the test above counts comes from the print, not from the depth."""
+def test_the_print_turns_the_real_gelatin_box(real_labels):
+    """Its shape allows the gelatin box three half turns that its print breaks; the model's stage 2, which sees no
+    colour, is taught its pose only up to them, and the colour check chooses among them by the real frame's colours
+    (RESULTS.md). Posed at its true pose turned each way, on its own labelled points, the check brings it back in
+    nearly every real frame; with the frame's colours shuffled among its points it cannot (each frame's four starts
+    end in one turn, the right one by chance)."""
+    from detector.geometry.colour_check import colour_checked
+    from detector.geometry.icp import turned_poses
+    from detector.geometry.types import Detection
+
     ck = load_checkpoint(CKPT)
     objects = checkpoint_objects(ck)[0]
-    cfg = replace(checkpoint_geometry_config(ck, None, True), colour_check=False)
-    s = evaluate(network_predictor(ck), real_labels, tmp_path / "rep", icp=True, cfg=cfg, min_visib=0.0,
-                 poser=checkpoint_poser(ck, objects))
-    errs = np.array([np.inf if r["icp"] is None else r["icp"] / r["diameter"] for r in s["instances"] if r["obj_id"] == 8])
-    assert np.sum(errs < 0.1) <= 2, np.round(errs, 3)
+    cfg = checkpoint_geometry_config(ck, None, False)
+    assert 8 in objects.texture and len(objects.shape_symmetries[8]) == 3
+    right = shuffled_right = 0
+    with LabelFile(real_labels) as lf:
+        frames = [lf.frame(i) for i in range(lf.num_frames)]
+    for i, f in enumerate(frames):
+        g = int(np.flatnonzero(np.asarray(f.instances.obj_id) == 8)[0])
+        rows = np.flatnonzero(np.asarray(f.instance) == g)
+        R, t = np.asarray(f.instances.R[g], np.float64), np.asarray(f.instances.t[g], np.float64)
+        Rk, tk = turned_poses(R, t, objects.shape_symmetries[8])
+        dets = [Detection(8, 0.9, Rk[k], tk[k], 10, np.zeros((9, 3)), np.arange(3), points=rows) for k in range(4)]
+        feats = np.asarray(f.features, np.float64)
+        shuffled = feats[np.random.default_rng(i).permutation(len(feats)), 3:6]  # the frame's colours, print lost
+        for colours, count in ((feats[:, 3:6], True), (shuffled, False)):
+            out = colour_checked(dets, feats[:, :3], colours, objects, cfg, icp=False)
+            back = sum(np.degrees(np.arccos(np.clip((np.trace(d.R.T @ R) - 1) / 2, -1, 1))) < 5.0
+                       and np.linalg.norm(d.t - t) < 0.005 for d in out)  # back at the true pose (not a turn)
+            if count:
+                right += back
+            else:
+                shuffled_right += back
+    # 4 starts (the true pose and its three turns) in each of 10 frames; measured 40 of 40 with the frames' colours,
+    # 0 of 40 with them shuffled
+    assert right >= 36, right
+    assert shuffled_right <= 24, shuffled_right
 
 
 def test_shipped_stage1_labels_the_real_mug(real_labels):

@@ -157,3 +157,17 @@ if [ "${STAGE1_PLANE:-0}" = 1 ]; then
       .venv/bin/python bench/false_alarms.py "$m/model.pt" "$R"/ycbv_real/test/000000/0000{01..10}
   done
 fi
+
+# 9. stage 2 without colour (`stage2.crop.colour=none`, RESULTS.md: tried, not kept for lm8, kept for ycbv3.pt):
+#    stage 2 alone trained again beside runs/lm8's stage 1 (a run folder holding a copy of that finished stage 1),
+#    13000 steps, scored on the linemod test capture; about 30 minutes. Only with STAGE2_NOCOLOUR=1.
+if [ "${STAGE2_NOCOLOUR:-0}" = 1 ]; then
+  r=runs/lm8-s2-none
+  if [ ! -f "$r/model.pt" ]; then
+    [ -d "$r/stage1" ] || { mkdir -p "$r" && cp -r runs/lm8/stage1 "$r/"; }
+    printf 'stage2:\n  crop.colour: none\n  keep_every: 1300\n' > "$r/two_stage.yaml"
+    $D train "$OUT/lm_train.h5" --out "$r" --resume --quiet
+  fi
+  [ -f "reports/lm8-s2-none-test/report.json" ] || \
+    $D eval "$r/model.pt" "$OUT/lm_test.h5" --out "reports/lm8-s2-none-test" --icp --quiet
+fi

@@ -1,9 +1,9 @@
 #!/usr/bin/env bash
 # Your own objects on a real sensor, end to end: from the three ycbv_real meshes to a detector evaluated on
 # the 10 real YCB-Video frames (Asus Xtion), on a 2-core CPU. Capture-sim with the Xtion's camera.json,
-# per-point labels, the default two-stage detector (stage 1 on geometry only, learned from a second capture without
-# distractors; stage 2 with camera-like colour, among them), then `detector eval --icp` on the real frames. Each
-# step's wall time goes to $RUN.times.txt.
+# per-point labels, the default two-stage detector on geometry only (stage 1 learned from a second capture without
+# distractors, stage 2 among them), then `detector eval --icp` on the real frames, where the frame's colours choose
+# which way round the printed gelatin box lies (the colour check). Each step's wall time goes to $RUN.times.txt.
 #
 #   bash examples/ycbv_real/run.sh          # from the repository root, after `make install`
 #
@@ -36,11 +36,14 @@ step capture_stage1 $A "${CAPTURE[@]}" --out "$OUT/ycbv_stage1" --set clutter.co
 [ -f "$OUT/ycbv_real.h5" ] || $A label "$REAL" --split test --out "$OUT/ycbv_real.h5" --max-depth 1.5 --quiet
 # 3. the two-stage detector: stage 1 without colour (geometry only: it finds more on the real frames, RESULTS.md)
 #    on the capture without distractors, seeing a tenth of the frame's dominant plane (the desk: more of its 4096
-#    points on the objects, RESULTS.md), stage 2 with camera-like colour changes (exposure, white balance, gamma,
-#    noise) on the one with them
-#    (stage 2 keeps its weights every 2000 steps for the training-length row of RESULTS.md's ablation)
-SETS=(--set stage1.colour=none --set stage1.plane_keep=0.1 --set stage2.crop.colour=camera
-      --set stage2.steps=${S2STEPS:-8000} --set stage2.keep_every=2000)
+#    points on the objects, RESULTS.md), stage 2 also without colour (its coordinates taught up to the turns that
+#    only an object's print tells apart: the colour check chooses among them) on the one with them. S2COLOUR=camera
+#    S2STEPS=8000 gives the stage 2 of runs A-K in RESULTS.md's ablation (camera-like colour changes: exposure, white
+#    balance, gamma, noise). Stage 2 keeps its weights every 2000 steps for the training-length rows
+S2COLOUR=${S2COLOUR:-none}
+S2STEPS=${S2STEPS:-4000}
+SETS=(--set stage1.colour=none --set stage1.plane_keep=0.1 --set stage2.crop.colour=$S2COLOUR
+      --set stage2.steps=$S2STEPS --set stage2.keep_every=2000)
 if [ -f "$RUN/two_stage.yaml" ] && [ ! -f "$RUN/model.pt" ]; then
   step train $D train "$OUT/ycbv_train.h5" --stage1-data "$OUT/ycbv_stage1.h5" --out "$RUN" --resume --quiet
 elif [ ! -f "$RUN/model.pt" ]; then
@@ -86,16 +89,38 @@ for a in "default:" "before_half_turns:$OLD" "min_votes_2:$G.min_votes=2"; do
   done
 done
 .venv/bin/python examples/ycbv_real/seeds.py "$REP/seeds"
-# 6d. the thinned plane (RESULTS.md, ablation row K): stage 1 trained again seeing every point of the plane
+# 6d. stage 2's colour input (RESULTS.md, "A stage 2 without colour"): stage 2 alone trained again beside the run's
+#     stage 1 (a run folder holding the run's finished stage 1, resumed) with camera-like colour changes
+#     (`camera`), without colour and taught the object's own symmetries only (`crop.shape_turns: false`), and as the
+#     run's with another seed; the run's own number of steps; seeds 0-7 on the real frames and the simulated test
+#     capture; about 7 minutes each
+for variant in camera:camera:true:0 none_own_symmetries:none:false:0 none_seed_1:none:true:1; do
+  IFS=: read -r name colour turns s2seed <<< "$variant"; r="$RUN-s2-$name"
+  if [ ! -f "$r/model.pt" ]; then
+    [ -d "$r/stage1" ] || { mkdir -p "$r" && cp -r "$RUN/stage1" "$r/"; }
+    printf 'stage1:\n  colour: none\n  plane_keep: 0.1\nstage2:\n  crop.colour: %s\n  crop.shape_turns: %s\n  seed: %s\n  steps: %s\n  keep_every: 2000\n' \
+      "$colour" "$turns" "$s2seed" "$S2STEPS" > "$r/two_stage.yaml"
+    $D train "$OUT/ycbv_train.h5" --out "$r" --resume --quiet
+  fi
+  for seed in 0 1 2 3 4 5 6 7; do
+    [ -f "$REP/seeds_stage2/$name-$seed/report.json" ] || $D eval "$r/model.pt" "$OUT/ycbv_real.h5" \
+      --out "$REP/seeds_stage2/$name-$seed" --icp --min-visib 0 --quiet --seed $seed
+  done
+  [ -f "$REP/simtest_s2_$name/report.json" ] || $D eval "$r/model.pt" "$OUT/ycbv_simtest.h5" \
+    --out "$REP/simtest_s2_$name" --icp --quiet
+done
+.venv/bin/python examples/ycbv_real/seeds.py "$REP/seeds_stage2"
+# 6e. the thinned plane (RESULTS.md, ablation row K): stage 1 trained again seeing every point of the plane
 #     (plane_keep 1, as before) and with another seed, each beside the run's stage 2 (a run folder holding a copy of
-#     that finished stage 2, resumed: a finished stage is not trained again); seeds 0-7 on the real frames, the
-#     simulated test capture and the stage-1 probe; about 16 minutes a stage 1
+#     that finished stage 2, resumed: a finished stage is not trained again; RESULTS.md's figures are beside the
+#     stage 2 of S2COLOUR=camera S2STEPS=8000); seeds 0-7 on the real frames, the simulated test capture and the
+#     stage-1 probe; about 16 minutes a stage 1
 for variant in plane_keep_1:1.0:0 plane_seed_1:0.1:1; do
   name=${variant%%:*}; keep=$(echo "$variant" | cut -d: -f2); s1seed=${variant##*:}; r="$RUN-s1-$name"
   if [ ! -f "$r/model.pt" ]; then
     [ -d "$r/stage2" ] || { mkdir -p "$r" && cp -r "$RUN/stage2" "$r/"; }
-    printf 'stage1:\n  colour: none\n  plane_keep: %s\n  seed: %s\nstage2:\n  crop.colour: camera\n  steps: %s\n  keep_every: 2000\n' \
-      "$keep" "$s1seed" "${S2STEPS:-8000}" > "$r/two_stage.yaml"
+    printf 'stage1:\n  colour: none\n  plane_keep: %s\n  seed: %s\nstage2:\n  crop.colour: %s\n  steps: %s\n  keep_every: 2000\n' \
+      "$keep" "$s1seed" "$S2COLOUR" "$S2STEPS" > "$r/two_stage.yaml"
     $D train "$OUT/ycbv_train.h5" --stage1-data "$OUT/ycbv_stage1.h5" --out "$r" --resume --quiet
   fi
   for seed in 0 1 2 3 4 5 6 7; do
