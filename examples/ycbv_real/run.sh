@@ -110,6 +110,9 @@ for variant in camera:camera:true:0 none_own_symmetries:none:false:0 none_seed_1
     --out "$REP/simtest_s2_$name" --icp --quiet
 done
 .venv/bin/python examples/ycbv_real/seeds.py "$REP/seeds_stage2"
+for m in "$RUN" "$RUN-s2-camera"; do  # each stage 2 given the true centres (RESULTS.md)
+  .venv/bin/python bench/probe_crops.py "$m/model.pt" "$OUT/ycbv_real.h5" --jitter 0
+done
 # 6e. the thinned plane (RESULTS.md, ablation row K): stage 1 trained again seeing every point of the plane
 #     (plane_keep 1, as before) and with another seed, each beside the run's stage 2 (a run folder holding a copy of
 #     that finished stage 2, resumed: a finished stage is not trained again; RESULTS.md's figures are beside the
