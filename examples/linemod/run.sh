@@ -14,6 +14,17 @@ D=.venv/bin/detector
 M=${MODELS:-../shared/data/lm/models}      # BOP LineMOD models (mm)
 OUT=${OUT:-data}
 mkdir -p "$OUT"
+# train_beside KEEP RUN YAML: the run folder RUN holds a copy of runs/lm8's finished stage KEEP (stage1 or stage2)
+# and YAML as its two_stage.yaml, and is trained on the training capture (resumed: the finished stage is not trained
+# again), unless its model.pt exists (steps 7-9)
+train_beside() {
+  local keep=$1 r=$2 yaml=$3
+  if [ ! -f "$r/model.pt" ]; then
+    [ -d "$r/$keep" ] || { mkdir -p "$r" && cp -r "runs/lm8/$keep" "$r/"; }
+    printf '%s\n' "$yaml" > "$r/two_stage.yaml"
+    $D train "$OUT/lm_train.h5" --out "$r" --resume --quiet
+  fi
+}
 
 # 1. simulated AR captures (BOP format); seeds differ between train, validation and test
 $A capture-sim --scene linemod --models "$M" --frames 2000 --seed 1 --workers 2 --out "$OUT/lm_train" --quiet
@@ -112,11 +123,8 @@ $D eval runs/lm8/model.pt "$OUT/lm_test_all.h5" --out reports/lm8_test_all --icp
 if [ "${STAGE1_COLOUR:-0}" = 1 ]; then
   for variant in light:0 camera:0 camera:1 camera_rgb:0 rank:0 grey_world:1 grey_world_rgb:0; do
     mode=${variant%%:*}; seed=${variant#*:}; r="runs/lm8-s1-$mode-$seed"
-    if [ ! -f "$r/model.pt" ]; then
-      [ -d "$r/stage2" ] || { mkdir -p "$r" && cp -r runs/lm8/stage2 "$r/"; }
-      printf 'stage1:\n  colour: %s\n  seed: %s\nstage2:\n  keep_every: 1300\n' "$mode" "$seed" > "$r/two_stage.yaml"
-      $D train "$OUT/lm_train.h5" --out "$r" --resume --quiet
-    fi
+    train_beside stage2 "$r" \
+      "$(printf 'stage1:\n  colour: %s\n  seed: %s\nstage2:\n  keep_every: 1300' "$mode" "$seed")"
     n=$(basename "$r")
     [ -f "reports/$n-test/report.json" ] || $D eval "$r/model.pt" "$OUT/lm_test.h5" --out "reports/$n-test" --icp --quiet
     [ -f "reports/$n-lchf/report.json" ] || $D eval "$r/model.pt" "$OUT/lchf_test.h5" --out "reports/$n-lchf" --icp --quiet
@@ -142,11 +150,7 @@ fi
 #    stage-1 probe and on the real frames without LineMOD objects; about 18 minutes. Only with STAGE1_PLANE=1.
 if [ "${STAGE1_PLANE:-0}" = 1 ]; then
   r=runs/lm8-s1-plane
-  if [ ! -f "$r/model.pt" ]; then
-    [ -d "$r/stage2" ] || { mkdir -p "$r" && cp -r runs/lm8/stage2 "$r/"; }
-    printf 'stage1:\n  plane_keep: 0.1\nstage2:\n  keep_every: 1300\n' > "$r/two_stage.yaml"
-    $D train "$OUT/lm_train.h5" --out "$r" --resume --quiet
-  fi
+  train_beside stage2 "$r" "$(printf 'stage1:\n  plane_keep: 0.1\nstage2:\n  keep_every: 1300')"
   for d in lm_test lchf_test lm_val lchf_val; do
     [ -f "reports/lm8-s1-plane-$d/report.json" ] || \
       $D eval "$r/model.pt" "$OUT/$d.h5" --out "reports/lm8-s1-plane-$d" --icp --quiet
@@ -163,11 +167,7 @@ fi
 #    13000 steps, scored on the linemod test capture; about 30 minutes. Only with STAGE2_NOCOLOUR=1.
 if [ "${STAGE2_NOCOLOUR:-0}" = 1 ]; then
   r=runs/lm8-s2-none
-  if [ ! -f "$r/model.pt" ]; then
-    [ -d "$r/stage1" ] || { mkdir -p "$r" && cp -r runs/lm8/stage1 "$r/"; }
-    printf 'stage2:\n  crop.colour: none\n  keep_every: 1300\n' > "$r/two_stage.yaml"
-    $D train "$OUT/lm_train.h5" --out "$r" --resume --quiet
-  fi
+  train_beside stage1 "$r" "$(printf 'stage2:\n  crop.colour: none\n  keep_every: 1300')"
   [ -f "reports/lm8-s2-none-test/report.json" ] || \
     $D eval "$r/model.pt" "$OUT/lm_test.h5" --out "reports/lm8-s2-none-test" --icp --quiet
 fi

@@ -20,6 +20,17 @@ REP=${REP:-reports/ycbv3_real}
 mkdir -p "$OUT"
 T="$RUN.times.txt"
 step() { local name=$1; shift; local t0; t0=$(date +%s); "$@"; echo "$name $(( $(date +%s) - t0 )) s" >> "$T"; }
+# train_beside KEEP R YAML [TRAIN OPTIONS]: the run folder R holds a copy of the run's finished stage KEEP (stage1 or
+# stage2) and YAML as its two_stage.yaml, and is trained on the capture with distractors (resumed: the finished stage
+# is not trained again), unless its model.pt exists (steps 6d, 6e and 7)
+train_beside() {
+  local keep=$1 r=$2 yaml=$3; shift 3
+  if [ ! -f "$r/model.pt" ]; then
+    [ -d "$r/$keep" ] || { mkdir -p "$r" && cp -r "$RUN/$keep" "$r/"; }
+    printf '%s\n' "$yaml" > "$r/two_stage.yaml"
+    $D train "$OUT/ycbv_train.h5" "$@" --out "$r" --resume --quiet
+  fi
+}
 
 # 1. simulated AR capture with the sensor's intrinsics and image size (its BOP camera.json)
 CAPTURE=(capture-sim --scene examples/ycbv_real/ycbv.yaml --camera "$REAL/camera.json" --models "$M"
@@ -96,12 +107,8 @@ done
 #     capture; about 7 minutes each
 for variant in camera:camera:true:0 none_own_symmetries:none:false:0 none_seed_1:none:true:1; do
   IFS=: read -r name colour turns s2seed <<< "$variant"; r="$RUN-s2-$name"
-  if [ ! -f "$r/model.pt" ]; then
-    [ -d "$r/stage1" ] || { mkdir -p "$r" && cp -r "$RUN/stage1" "$r/"; }
-    printf 'stage1:\n  colour: none\n  plane_keep: 0.1\nstage2:\n  crop.colour: %s\n  crop.shape_turns: %s\n  seed: %s\n  steps: %s\n  keep_every: 2000\n' \
-      "$colour" "$turns" "$s2seed" "$S2STEPS" > "$r/two_stage.yaml"
-    $D train "$OUT/ycbv_train.h5" --out "$r" --resume --quiet
-  fi
+  train_beside stage1 "$r" "$(printf 'stage1:\n  colour: none\n  plane_keep: 0.1\nstage2:\n  crop.colour: %s\n  crop.shape_turns: %s\n  seed: %s\n  steps: %s\n  keep_every: 2000' \
+    "$colour" "$turns" "$s2seed" "$S2STEPS")"
   for seed in 0 1 2 3 4 5 6 7; do
     [ -f "$REP/seeds_stage2/$name-$seed/report.json" ] || $D eval "$r/model.pt" "$OUT/ycbv_real.h5" \
       --out "$REP/seeds_stage2/$name-$seed" --icp --min-visib 0 --quiet --seed $seed
@@ -120,12 +127,8 @@ done
 #     stage-1 probe; about 16 minutes a stage 1
 for variant in plane_keep_1:1.0:0 plane_seed_1:0.1:1; do
   name=${variant%%:*}; keep=$(echo "$variant" | cut -d: -f2); s1seed=${variant##*:}; r="$RUN-s1-$name"
-  if [ ! -f "$r/model.pt" ]; then
-    [ -d "$r/stage2" ] || { mkdir -p "$r" && cp -r "$RUN/stage2" "$r/"; }
-    printf 'stage1:\n  colour: none\n  plane_keep: %s\n  seed: %s\nstage2:\n  crop.colour: %s\n  steps: %s\n  keep_every: 2000\n' \
-      "$keep" "$s1seed" "$S2COLOUR" "$S2STEPS" > "$r/two_stage.yaml"
-    $D train "$OUT/ycbv_train.h5" --stage1-data "$OUT/ycbv_stage1.h5" --out "$r" --resume --quiet
-  fi
+  train_beside stage2 "$r" "$(printf 'stage1:\n  colour: none\n  plane_keep: %s\n  seed: %s\nstage2:\n  crop.colour: %s\n  steps: %s\n  keep_every: 2000' \
+    "$keep" "$s1seed" "$S2COLOUR" "$S2STEPS")" --stage1-data "$OUT/ycbv_stage1.h5"
   for seed in 0 1 2 3 4 5 6 7; do
     [ -f "$REP/seeds_plane/$name-$seed/report.json" ] || $D eval "$r/model.pt" "$OUT/ycbv_real.h5" \
       --out "$REP/seeds_plane/$name-$seed" --icp --min-visib 0 --quiet --seed $seed
@@ -146,12 +149,8 @@ if [ "${COLOUR_MODES:-0}" = 1 ]; then
   for mode in camera camera_tone rank; do
     for seed in 0 1; do
       r="$RUN-s2-$mode-$seed"
-      if [ ! -f "$r/model.pt" ]; then
-        [ -d "$r/stage1" ] || { mkdir -p "$r" && cp -r "$RUN/stage1" "$r/"; }
-        printf 'stage1:\n  colour: none\nstage2:\n  crop.colour: %s\n  steps: 3000\n  seed: %s\n' "$mode" "$seed" \
-          > "$r/two_stage.yaml"
-        $D train "$OUT/ycbv_train.h5" --out "$r" --resume --quiet
-      fi
+      train_beside stage1 "$r" \
+        "$(printf 'stage1:\n  colour: none\nstage2:\n  crop.colour: %s\n  steps: 3000\n  seed: %s' "$mode" "$seed")"
       [ -f "$REP/s2-$mode-$seed/report.json" ] || \
         $D eval "$r/model.pt" "$OUT/ycbv_real.h5" --out "$REP/s2-$mode-$seed" --icp --min-visib 0 --quiet
       echo "$r"
