@@ -171,3 +171,15 @@ if [ "${STAGE2_NOCOLOUR:-0}" = 1 ]; then
   [ -f "reports/lm8-s2-none-test/report.json" ] || \
     $D eval "$r/model.pt" "$OUT/lm_test.h5" --out "reports/lm8-s2-none-test" --icp --quiet
 fi
+
+# 10. a longer stage 2 (RESULTS.md, "Training length"): stage 2 alone trained again beside runs/lm8's stage 1 for
+#     18000 steps instead of 13000 (about 36 minutes; with stage 1's 17, 53 minutes of training), scored on both
+#     test captures and both validation captures. Only with STAGE2_LONG=1.
+if [ "${STAGE2_LONG:-0}" = 1 ]; then
+  r=runs/lm8-s2-18000
+  train_beside stage1 "$r" "$(printf 'stage2:\n  steps: 18000\n  keep_every: 3000')"
+  for d in lm_test lchf_test lm_val lchf_val; do
+    [ -f "reports/lm8-s2-18000-$d/report.json" ] || \
+      $D eval "$r/model.pt" "$OUT/$d.h5" --out "reports/lm8-s2-18000-$d" --icp --quiet
+  done
+fi
