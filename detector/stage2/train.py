@@ -52,7 +52,7 @@ class Stage2TrainConfig:
 
     crop: CropConfig = field(default_factory=CropConfig)
     net: CropNetConfig = field(default_factory=CropNetConfig)
-    steps: int = 13000
+    steps: int = 18000
     batch_frames: int = 8
     lr: float = 2e-3
     weight_decay: float = 1e-4

@@ -16,7 +16,7 @@ OUT=${OUT:-data}
 mkdir -p "$OUT"
 # train_beside KEEP RUN YAML: the run folder RUN holds a copy of runs/lm8's finished stage KEEP (stage1 or stage2)
 # and YAML as its two_stage.yaml, and is trained on the training capture (resumed: the finished stage is not trained
-# again), unless its model.pt exists (steps 7-9)
+# again), unless its model.pt exists (step 7)
 train_beside() {
   local keep=$1 r=$2 yaml=$3
   if [ ! -f "$r/model.pt" ]; then
@@ -42,12 +42,12 @@ done
 
 # 3. the default two-stage model: stage 1 (objects and their centres; colour over its frame mean, `grey_world`), then
 #    stage 2 (pose in crops);
-#    runs/lm8/model.pt holds both (checkpoints/lm8.pt is this file); stage 2 keeps its weights every 1300 steps
-#    for the time-to-accuracy curve
+#    runs/lm8/model.pt holds both (checkpoints/lm8.pt is this file); stage 2 (18000 steps, the default) keeps its
+#    weights every 3000 steps for the time-to-accuracy curve
 if [ -f runs/lm8/two_stage.yaml ] && [ ! -f runs/lm8/model.pt ]; then
   $D train "$OUT/lm_train.h5" --out runs/lm8 --resume --quiet
 elif [ ! -f runs/lm8/model.pt ]; then
-  $D train "$OUT/lm_train.h5" --out runs/lm8 --set stage2.keep_every=1300 --quiet
+  $D train "$OUT/lm_train.h5" --out runs/lm8 --set stage2.keep_every=3000 --quiet
 fi
 
 # 4. evaluation with the model's own thresholds: linemod test set with and without ICP, lchf test set (F1)
@@ -114,72 +114,22 @@ fi
 [ -f "$OUT/lm_test_all.h5" ] || $A label "$OUT/lm_test" --out "$OUT/lm_test_all.h5" --max-depth 20 --quiet
 $D eval runs/lm8/model.pt "$OUT/lm_test_all.h5" --out reports/lm8_test_all --icp --quiet
 
-# 7. stage 1's colour input (RESULTS.md, "Stage 1's colour input"): stage 1 alone trained again with `light` (the
-#    default before `grey_world`), `camera` (seeds 0 and 1), `camera_rgb`, `rank`, `grey_world` (seed 1; runs/lm8
-#    is seed 0) and `grey_world_rgb`, each beside runs/lm8's stage 2 (a run
-#    folder holding a copy of that finished stage 2 and its own two_stage.yaml, resumed: a finished stage is not
-#    trained again), scored on both test captures and under other cameras' colours (bench/probe_colour.py on the
-#    validation captures, as for runs/lm8 itself); about 20 minutes each. Only with STAGE1_COLOUR=1.
-if [ "${STAGE1_COLOUR:-0}" = 1 ]; then
-  for variant in light:0 camera:0 camera:1 camera_rgb:0 rank:0 grey_world:1 grey_world_rgb:0; do
-    mode=${variant%%:*}; seed=${variant#*:}; r="runs/lm8-s1-$mode-$seed"
-    train_beside stage2 "$r" \
-      "$(printf 'stage1:\n  colour: %s\n  seed: %s\nstage2:\n  keep_every: 1300' "$mode" "$seed")"
+# 7. training length (RESULTS.md, "Training length"): stage 2 alone trained again beside runs/lm8's stage 1 for
+#    13000 steps (the previous lm8.pt's stage 2, about 29 minutes), and stage 1 alone for 4000 steps instead of
+#    3000 beside runs/lm8's stage 2 (about 19 minutes); each scored on both test and both validation captures, and
+#    the longer stage 1 on the real frames without LineMOD objects. Only with TRAINING_LENGTH=1.
+if [ "${TRAINING_LENGTH:-0}" = 1 ]; then
+  train_beside stage1 runs/lm8-s2-13000 "$(printf 'stage2:\n  steps: 13000\n  keep_every: 1300')"
+  train_beside stage2 runs/lm8-s1-4000 "$(printf 'stage1:\n  steps: 4000\nstage2:\n  keep_every: 3000')"
+  for r in runs/lm8-s2-13000 runs/lm8-s1-4000; do
     n=$(basename "$r")
-    [ -f "reports/$n-test/report.json" ] || $D eval "$r/model.pt" "$OUT/lm_test.h5" --out "reports/$n-test" --icp --quiet
-    [ -f "reports/$n-lchf/report.json" ] || $D eval "$r/model.pt" "$OUT/lchf_test.h5" --out "reports/$n-lchf" --icp --quiet
+    for d in lm_test lchf_test lm_val lchf_val; do
+      [ -f "reports/$n-$d/report.json" ] || $D eval "$r/model.pt" "$OUT/$d.h5" --out "reports/$n-$d" --icp --quiet
+    done
   done
-  for r in runs/lm8 runs/lm8-s1-grey_world-1 runs/lm8-s1-grey_world_rgb-0 runs/lm8-s1-light-0 runs/lm8-s1-camera-0 \
-           runs/lm8-s1-camera-1 runs/lm8-s1-camera_rgb-0 runs/lm8-s1-rank-0; do
-    echo "$r"
-    .venv/bin/python bench/probe_colour.py "$r/model.pt" "$OUT/lm_val.h5" --change none darker brighter warm gamma grey \
-      zeros
-  done
-  for r in runs/lm8 runs/lm8-s1-grey_world-1 runs/lm8-s1-grey_world_rgb-0 runs/lm8-s1-light-0 \
-           runs/lm8-s1-camera-0; do  # the LC-HF-style validation capture
-    echo "$r"
-    .venv/bin/python bench/probe_colour.py "$r/model.pt" "$OUT/lchf_val.h5" --change none darker warm
-  done
-  for r in runs/lm8 runs/lm8-s1-rank-0; do  # the colour changed in stage 1 only
-    .venv/bin/python bench/probe_colour.py "$r/model.pt" "$OUT/lm_val.h5" --change none darker warm --stage stage1
-  done
-fi
-
-# 8. stage 1 with the frame's dominant plane thinned (`stage1.plane_keep=0.1`, RESULTS.md: tried, not kept for lm8):
-#    stage 1 alone trained again beside runs/lm8's stage 2, scored on both test and both validation captures, on the
-#    stage-1 probe and on the real frames without LineMOD objects; about 18 minutes. Only with STAGE1_PLANE=1.
-if [ "${STAGE1_PLANE:-0}" = 1 ]; then
-  r=runs/lm8-s1-plane
-  train_beside stage2 "$r" "$(printf 'stage1:\n  plane_keep: 0.1\nstage2:\n  keep_every: 1300')"
-  for d in lm_test lchf_test lm_val lchf_val; do
-    [ -f "reports/lm8-s1-plane-$d/report.json" ] || \
-      $D eval "$r/model.pt" "$OUT/$d.h5" --out "reports/lm8-s1-plane-$d" --icp --quiet
-  done
-  for m in runs/lm8 "$r"; do
-    .venv/bin/python bench/probe_stage1.py "$m/model.pt" "$OUT/lm_test.h5" --frames 100
-    [ -d "$R/ycbv_real/test/000000" ] && \
-      .venv/bin/python bench/false_alarms.py "$m/model.pt" "$R"/ycbv_real/test/000000/0000{01..10}
-  done
-fi
-
-# 9. stage 2 without colour (`stage2.crop.colour=none`, RESULTS.md: tried, not kept for lm8, kept for ycbv3.pt):
-#    stage 2 alone trained again beside runs/lm8's stage 1 (a run folder holding a copy of that finished stage 1),
-#    13000 steps, scored on the linemod test capture; about 30 minutes. Only with STAGE2_NOCOLOUR=1.
-if [ "${STAGE2_NOCOLOUR:-0}" = 1 ]; then
-  r=runs/lm8-s2-none
-  train_beside stage1 "$r" "$(printf 'stage2:\n  crop.colour: none\n  keep_every: 1300')"
-  [ -f "reports/lm8-s2-none-test/report.json" ] || \
-    $D eval "$r/model.pt" "$OUT/lm_test.h5" --out "reports/lm8-s2-none-test" --icp --quiet
-fi
-
-# 10. a longer stage 2 (RESULTS.md, "Training length"): stage 2 alone trained again beside runs/lm8's stage 1 for
-#     18000 steps instead of 13000 (about 36 minutes; with stage 1's 17, 53 minutes of training), scored on both
-#     test captures and both validation captures. Only with STAGE2_LONG=1.
-if [ "${STAGE2_LONG:-0}" = 1 ]; then
-  r=runs/lm8-s2-18000
-  train_beside stage1 "$r" "$(printf 'stage2:\n  steps: 18000\n  keep_every: 3000')"
-  for d in lm_test lchf_test lm_val lchf_val; do
-    [ -f "reports/lm8-s2-18000-$d/report.json" ] || \
-      $D eval "$r/model.pt" "$OUT/$d.h5" --out "reports/lm8-s2-18000-$d" --icp --quiet
-  done
+  if [ -d "$R/ycbv_real/test/000000" ] && [ -d "$R/recordings/tum_desk" ]; then
+    .venv/bin/python bench/false_alarms.py runs/lm8-s1-4000/model.pt "$R"/ycbv_real/test/000000/0000{01..10}
+    .venv/bin/python bench/false_alarms.py runs/lm8-s1-4000/model.pt "$R/recordings/tum_desk/depth/000000.png" \
+      --K 525,525,319.5,239.5 --depth-scale 0.2 --rgb "$R/recordings/tum_desk/rgb/000000.png"
+  fi
 fi
