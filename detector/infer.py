@@ -79,17 +79,20 @@ def estimate(preds: Predictions, objects: ObjectInfo, cfg: GeometryConfig, timin
             [d for d in refined if d.score >= cfg.min_score] if refined is not None else None)
 
 
-def colour_readers(ckpt, objects: ObjectInfo, cfg: GeometryConfig) -> list[str]:
-    """What of a model reads a frame's colours: "stage 1" and "stage 2" where their networks take colour input,
-    "the colour check" where it is on (``cfg.colour_check``) and an object carries a print to check
-    (``objects.texture``). [] for a model that works on depth alone. ckpt: a loaded checkpoint
-    (:func:`detector.checkpoint.load_checkpoint`)."""
+def colour_networks(ckpt) -> list[str]:
+    """The stages of a model whose networks take colour input: "stage 1", "stage 2" ([] for networks that see
+    geometry only). ckpt: a loaded checkpoint (:func:`detector.checkpoint.load_checkpoint`)."""
     out = [] if ckpt.normalisation.get("colour") == "none" else ["stage 1"]
     if ckpt.stage2 is not None and (ckpt.stage2.get("normalisation") or {}).get("colour") != "none":
         out.append("stage 2")
-    if cfg.colour_check and objects.texture:
-        out.append("the colour check")
     return out
+
+
+def colour_readers(ckpt, objects: ObjectInfo, cfg: GeometryConfig) -> list[str]:
+    """What of a model reads a frame's colours: :func:`colour_networks`, and "the colour check" where it is on
+    (``cfg.colour_check``) and an object carries a print to check (``objects.texture``). [] for a model that works
+    on depth alone."""
+    return colour_networks(ckpt) + (["the colour check"] if cfg.colour_check and objects.texture else [])
 
 
 def checkpoint_max_depth(ckpt, given: float | None = None) -> float | None:

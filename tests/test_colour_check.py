@@ -4,6 +4,8 @@ the label file's object table); the detector turns a detection to the way round 
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import open3d as o3d
 import pytest
@@ -184,7 +186,7 @@ def test_what_reads_colour_is_each_colour_input_and_the_check_where_a_print_is_c
     network's colour input, or the colour check for a model whose objects carry a print."""
     from types import SimpleNamespace
 
-    from detector.infer import colour_readers
+    from detector.infer import colour_networks, colour_readers
 
     def model(s1, s2):
         return SimpleNamespace(normalisation={"colour": s1}, stage2={"normalisation": {"colour": s2}})
@@ -199,3 +201,29 @@ def test_what_reads_colour_is_each_colour_input_and_the_check_where_a_print_is_c
     assert colour_readers(model("none", "camera"), printed, on) == ["stage 2", "the colour check"]
     single = SimpleNamespace(normalisation={"colour": "light"}, stage2=None)
     assert colour_readers(single, plain, off) == ["stage 1"]
+    # the networks alone, whatever the objects and the check
+    assert colour_networks(model("none", "camera")) == ["stage 2"] and colour_networks(model("none", "none")) == []
+    assert colour_networks(model("grey_world", "none")) == ["stage 1"] and colour_networks(single) == ["stage 1"]
+
+
+@pytest.mark.parametrize("ckpt, readers, cost", [
+    ("lm8.pt", "stage 1, stage 2", "it finds little without it"),
+    ("ycbv3.pt", "the colour check", "a printed object's way round is left unchecked"),
+])
+def test_predict_warns_about_a_frame_without_colour_with_what_the_model_loses(tmp_path, ckpt, readers, cost):
+    """A depth PNG given without its colour image: the shipped model whose networks read colour warns that it finds
+    little; the one whose networks see geometry only, and whose objects carry a print, warns that the print's check
+    is skipped. Either way the frame is still predicted (exit 0, poses.json written)."""
+    import cv2
+    from typer.testing import CliRunner
+
+    from detector.cli.app import app as det_app
+
+    model = Path(__file__).resolve().parents[1] / "checkpoints" / ckpt
+    depth = np.full((480, 640), 900, np.uint16)  # a wall 0.9 m away, millimetres
+    cv2.imwrite(str(tmp_path / "depth.png"), depth)
+    r = CliRunner().invoke(det_app, ["predict", str(model), str(tmp_path / "depth.png"), "--K", "572,573,325,242",
+                                     "--out", str(tmp_path / "pred")])
+    assert r.exit_code == 0, r.output
+    assert f"reads colour ({readers})" in r.output and cost in r.output, r.output
+    assert (tmp_path / "pred" / "poses.json").is_file()

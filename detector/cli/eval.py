@@ -104,7 +104,7 @@ def register(app: typer.Typer) -> None:
         # lazy: torch and open3d load in seconds; `detector --help` and the other commands do not need them
         from detector.checkpoint import load_checkpoint
         from detector.infer import (checkpoint_geometry_config, checkpoint_max_depth, checkpoint_objects,
-                                    checkpoint_poser, colour_readers)
+                                    checkpoint_poser, colour_networks, colour_readers)
         from detector.predict import load_input, predict
         from detector.stage1.predictor import network_predictor
 
@@ -115,7 +115,7 @@ def register(app: typer.Typer) -> None:
         objects, names = checkpoint_objects(ckpt)
         readers = colour_readers(ckpt, objects, cfg)
         if readers and not inp.features[:, 3:6].any():
-            cost = ("it finds little without it (RESULTS.md)" if readers[0].startswith("stage") else
+            cost = ("it finds little without it (RESULTS.md)" if colour_networks(ckpt) else
                     "without it a printed object's way round is left unchecked")
             typer.echo(f"detector: warning: {checkpoint.name} reads colour ({', '.join(readers)}) and {input} has "
                        f"none (give the colour image with --rgb): {cost}", err=True)
