@@ -16,7 +16,7 @@ OUT=${OUT:-data}
 mkdir -p "$OUT"
 # train_beside KEEP RUN YAML: the run folder RUN holds a copy of runs/lm8's finished stage KEEP (stage1 or stage2)
 # and YAML as its two_stage.yaml, and is trained on the training capture (resumed: the finished stage is not trained
-# again), unless its model.pt exists (step 7)
+# again), unless its model.pt exists (steps 7-8)
 train_beside() {
   local keep=$1 r=$2 yaml=$3
   if [ ! -f "$r/model.pt" ]; then
@@ -131,5 +131,20 @@ if [ "${TRAINING_LENGTH:-0}" = 1 ]; then
     .venv/bin/python bench/false_alarms.py runs/lm8-s1-4000/model.pt "$R"/ycbv_real/test/000000/0000{01..10}
     .venv/bin/python bench/false_alarms.py runs/lm8-s1-4000/model.pt "$R/recordings/tum_desk/depth/000000.png" \
       --K 525,525,319.5,239.5 --depth-scale 0.2 --rgb "$R/recordings/tum_desk/rgb/000000.png"
+  fi
+fi
+
+# 8. stage 1's class loss weighted twice (`stage1.loss.w_cls=2`, RESULTS.md: tried, not kept): stage 1 alone trained
+#    again beside runs/lm8's stage 2 (about 15 minutes), scored on both test and both validation captures and on the
+#    real frames without LineMOD objects. Only with STAGE1_WCLS=1.
+if [ "${STAGE1_WCLS:-0}" = 1 ]; then
+  r=runs/lm8-s1-wcls2
+  train_beside stage2 "$r" "$(printf 'stage1:\n  loss.w_cls: 2.0\nstage2:\n  keep_every: 3000')"
+  for d in lm_test lchf_test lm_val lchf_val; do
+    [ -f "reports/lm8-s1-wcls2-$d/report.json" ] || \
+      $D eval "$r/model.pt" "$OUT/$d.h5" --out "reports/lm8-s1-wcls2-$d" --icp --quiet
+  done
+  if [ -d "$R/ycbv_real/test/000000" ]; then
+    .venv/bin/python bench/false_alarms.py "$r/model.pt" "$R"/ycbv_real/test/000000/0000{01..10}
   fi
 fi
