@@ -25,6 +25,29 @@ train_beside() {
     $D train "$OUT/lm_train.h5" --out "$r" --resume --quiet
   fi
 }
+# eval_captures RUN: RUN/model.pt with ICP on both test and both validation captures, into reports/NAME-CAPTURE
+# (NAME: RUN's folder name), each report once (steps 7-8)
+eval_captures() {
+  local n d
+  n=$(basename "$1")
+  for d in lm_test lchf_test lm_val lchf_val; do
+    [ -f "reports/$n-$d/report.json" ] || $D eval "$1/model.pt" "$OUT/$d.h5" --out "reports/$n-$d" --icp --quiet
+  done
+}
+# false_alarms MODEL [ARGS...]: bench/false_alarms.py with ARGS on the real frames that hold none of the LineMOD
+# objects, those of them that REAL holds: the 10 ycbv_real frames and the TUM desk frame (steps 6b-8)
+R=${REAL:-../shared/data}
+false_alarms() {
+  local m=$1
+  shift
+  if [ -d "$R/ycbv_real/test/000000" ]; then
+    .venv/bin/python bench/false_alarms.py "$m" "$R"/ycbv_real/test/000000/0000{01..10} "$@"
+  fi
+  if [ -d "$R/recordings/tum_desk" ]; then
+    .venv/bin/python bench/false_alarms.py "$m" "$R/recordings/tum_desk/depth/000000.png" \
+      --K 525,525,319.5,239.5 --depth-scale 0.2 --rgb "$R/recordings/tum_desk/rgb/000000.png" "$@"
+  fi
+}
 
 # 1. simulated AR captures (BOP format); seeds differ between train, validation and test
 $A capture-sim --scene linemod --models "$M" --frames 2000 --seed 1 --workers 2 --out "$OUT/lm_train" --quiet
@@ -100,15 +123,8 @@ SINGLE=(); [ -f reports/lm_test_tau0/report.json ] && SINGLE=(--single-shot repo
 # 6b. real frames that hold none of the LineMOD objects (the 10 ycbv_real frames and the TUM desk frame, in
 #     ../shared/data): every detection there is a false alarm (RESULTS.md); within the model's working volume, as
 #     detector predict reads a frame, and with every point (--max-depth 20)
-R=${REAL:-../shared/data}
-if [ -d "$R/ycbv_real/test/000000" ] && [ -d "$R/recordings/tum_desk" ]; then
-  for depth in "" 20; do
-    V=(); [ -n "$depth" ] && V=(--max-depth "$depth")
-    .venv/bin/python bench/false_alarms.py runs/lm8/model.pt "$R"/ycbv_real/test/000000/0000{01..10} "${V[@]}"
-    .venv/bin/python bench/false_alarms.py runs/lm8/model.pt "$R/recordings/tum_desk/depth/000000.png" \
-      --K 525,525,319.5,239.5 --depth-scale 0.2 --rgb "$R/recordings/tum_desk/rgb/000000.png" "${V[@]}"
-  done
-fi
+false_alarms runs/lm8/model.pt
+false_alarms runs/lm8/model.pt --max-depth 20
 # 6c. the working volume (RESULTS.md): the test capture labelled with every point, not only those within the
 #     1.75 m of the training labels
 [ -f "$OUT/lm_test_all.h5" ] || $A label "$OUT/lm_test" --out "$OUT/lm_test_all.h5" --max-depth 20 --quiet
@@ -121,17 +137,9 @@ $D eval runs/lm8/model.pt "$OUT/lm_test_all.h5" --out reports/lm8_test_all --icp
 if [ "${TRAINING_LENGTH:-0}" = 1 ]; then
   train_beside stage1 runs/lm8-s2-13000 "$(printf 'stage2:\n  steps: 13000\n  keep_every: 1300')"
   train_beside stage2 runs/lm8-s1-4000 "$(printf 'stage1:\n  steps: 4000\nstage2:\n  keep_every: 3000')"
-  for r in runs/lm8-s2-13000 runs/lm8-s1-4000; do
-    n=$(basename "$r")
-    for d in lm_test lchf_test lm_val lchf_val; do
-      [ -f "reports/$n-$d/report.json" ] || $D eval "$r/model.pt" "$OUT/$d.h5" --out "reports/$n-$d" --icp --quiet
-    done
-  done
-  if [ -d "$R/ycbv_real/test/000000" ] && [ -d "$R/recordings/tum_desk" ]; then
-    .venv/bin/python bench/false_alarms.py runs/lm8-s1-4000/model.pt "$R"/ycbv_real/test/000000/0000{01..10}
-    .venv/bin/python bench/false_alarms.py runs/lm8-s1-4000/model.pt "$R/recordings/tum_desk/depth/000000.png" \
-      --K 525,525,319.5,239.5 --depth-scale 0.2 --rgb "$R/recordings/tum_desk/rgb/000000.png"
-  fi
+  eval_captures runs/lm8-s2-13000
+  eval_captures runs/lm8-s1-4000
+  false_alarms runs/lm8-s1-4000/model.pt
 fi
 
 # 8. stage 1 alone trained again beside runs/lm8's stage 2 (about 15 minutes each; RESULTS.md): its class loss
@@ -140,13 +148,9 @@ fi
 #    STAGE1_VARIANTS=1.
 if [ "${STAGE1_VARIANTS:-0}" = 1 ]; then
   for v in "wcls2:loss.w_cls: 2.0" "seed1:seed: 1"; do
-    r=runs/lm8-s1-${v%%:*}; n=$(basename "$r")
+    r=runs/lm8-s1-${v%%:*}
     train_beside stage2 "$r" "$(printf 'stage1:\n  %s\nstage2:\n  keep_every: 3000' "${v#*:}")"
-    for d in lm_test lchf_test lm_val lchf_val; do
-      [ -f "reports/$n-$d/report.json" ] || $D eval "$r/model.pt" "$OUT/$d.h5" --out "reports/$n-$d" --icp --quiet
-    done
-    if [ -d "$R/ycbv_real/test/000000" ]; then
-      .venv/bin/python bench/false_alarms.py "$r/model.pt" "$R"/ycbv_real/test/000000/0000{01..10}
-    fi
+    eval_captures "$r"
+    false_alarms "$r/model.pt"
   done
 fi
