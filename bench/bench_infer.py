@@ -5,10 +5,11 @@ median per stage and the median of whole frames (ICP included) over ``--frames``
 
 Usage: .venv/bin/python bench/bench_infer.py [--data FILE.h5] [--checkpoint CKPT] [--preset cpu paper]
                                              [--frames 5] [--device cpu|cuda] [--threads N]
-                                             [--set geometry.KEY=VALUE ...]
+                                             [--set geometry.KEY=VALUE ...] [--set sampling.density=D]
 
-``--set`` changes the checkpoint's geometry settings as ``detector eval --set`` does (e.g. the inference without
-the depth check and the other classes: ``--set geometry.depth_check=false --set geometry.other_classes=2``).
+``--set`` changes the checkpoint's geometry and sampling settings as ``detector eval --set`` does (e.g. the
+inference without the depth check and the other classes: ``--set geometry.depth_check=false --set
+geometry.other_classes=2``; stage 1 sampling as it trained: ``--set sampling.density=1``).
 
 Sampling + network: a checkpoint (or a randomly initialised network of each ``--preset``, same cost) on the
 label file's frames (median over frames after one warm-up). A random network's output is noise, so the
@@ -138,7 +139,8 @@ def main() -> None:
     ap.add_argument("--device", default="cpu")
     ap.add_argument("--threads", type=int, default=0, help="torch CPU threads (0: torch's default)")
     ap.add_argument("--set", dest="sets", action="append", default=[],
-                    help="a geometry setting of the checkpoint, geometry.KEY=VALUE (two-stage checkpoints)")
+                    help="a geometry or sampling setting of the checkpoint, geometry.KEY=VALUE or "
+                         "sampling.density=D (two-stage checkpoints)")
     args = ap.parse_args()
 
     import torch
@@ -147,6 +149,7 @@ def main() -> None:
     from detector.checkpoint import load_checkpoint
     from detector.data.frames import object_table_dict
     from detector.geometry.types import ObjectInfo
+    from detector.infer import split_sets
 
     if args.threads:
         torch.set_num_threads(args.threads)
@@ -157,11 +160,12 @@ def main() -> None:
             objects_dict = object_table_dict(lf.objects)
             objects = ObjectInfo.from_table(lf.objects)
         results = []
-        ckpts = [("checkpoint", load_checkpoint(args.checkpoint, args.device))] if args.checkpoint else \
+        geometry_sets, sampling = split_sets(args.sets)
+        ckpts = [("checkpoint", load_checkpoint(args.checkpoint, args.device, sampling))] if args.checkpoint else \
             [(p, random_checkpoint(p, objects_dict, args.device)) for p in args.preset]
         for name, ck in ckpts:
             if ck.stage2_net is not None:  # a two-stage model: its whole pipeline on its own predictions
-                t = two_stage_times(ck, frames, args.device, args.sets)
+                t = two_stage_times(ck, frames, args.device, geometry_sets)
                 ms = {k: round(1000 * v, 1) for k, v in t.items() if k not in ("detections", "crops")}
                 res = {"model": f"{name} (two-stage)", "device": args.device, "threads": torch.get_num_threads(),
                        "frame_points": int(statistics.mean(len(f.features) for f in frames)),

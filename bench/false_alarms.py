@@ -6,7 +6,7 @@ SPLIT_DIR/SCENE_ID/IM_ID, or a depth PNG with --K / --depth-scale / --rgb), run 
 --max-depth). Prints one line per frame (the detections' names and scores) and the totals.
 
 Usage: python bench/false_alarms.py CKPT INPUT [INPUT ...] [--K fx,fy,cx,cy --depth-scale S --rgb RGB.png]
-       [--out DIR] [--no-icp]
+       [--out DIR] [--no-icp] [--max-depth M] [--set sampling.density=D ...]
 
 Example (none of the LineMOD objects is in these frames):
   python bench/false_alarms.py checkpoints/lm8.pt ../shared/data/ycbv_real/test/000000/{000001..000010}
@@ -25,7 +25,8 @@ import torch
 
 from detector.checkpoint import load_checkpoint
 from detector.errors import DetectorError
-from detector.infer import checkpoint_geometry_config, checkpoint_max_depth, checkpoint_objects, checkpoint_poser
+from detector.infer import (checkpoint_geometry_config, checkpoint_max_depth, checkpoint_objects, checkpoint_poser,
+                            split_sets)
 from detector.predict import load_input, predict
 from detector.stage1.predictor import network_predictor
 
@@ -41,11 +42,17 @@ def main() -> None:
     ap.add_argument("--no-icp", action="store_true")
     ap.add_argument("--max-depth", type=float, default=None,
                     help="metres along z (default: the model's training volume, as detector predict)")
+    ap.add_argument("--set", dest="sets", action="append", default=[],
+                    help="a geometry or sampling setting of the model, as detector predict --set")
     a = ap.parse_args()
     torch.set_num_threads(2)
-    ckpt = load_checkpoint(a.ckpt, "cpu")
+    try:
+        sets, sampling = split_sets(a.sets)
+        ckpt = load_checkpoint(a.ckpt, "cpu", sampling)
+    except DetectorError as e:
+        ap.error(str(e))
     objects, names = checkpoint_objects(ckpt)
-    cfg = checkpoint_geometry_config(ckpt, None, not a.no_icp, None)
+    cfg = checkpoint_geometry_config(ckpt, None, not a.no_icp, None, sets)
     predictor = network_predictor(ckpt, 0)
     poser = checkpoint_poser(ckpt, objects, "cpu", 0)
     depth = checkpoint_max_depth(ckpt, a.max_depth)

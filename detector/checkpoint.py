@@ -5,7 +5,8 @@ writing the two-stage model file. The file format, and the renaming of older key
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+import math
+from dataclasses import dataclass, field, fields
 from pathlib import Path
 from typing import Any
 
@@ -31,7 +32,9 @@ class Checkpoint:
     stage2_net: a two-stage model's crop network (stage 2) or None; stage2: its part of the file (configs, classes)
     without the weights; geometry_config: inference settings stored with the model ({} for none); plane_keep: the
     share of a frame's dominant plane that the network's sampling keeps, as it was trained (1 for models trained
-    before that setting).
+    before that setting); num_points and ``model_config.npoints[0]`` (the keypoints the network predicts at) are
+    the inference's, which a model file's sampling settings (:class:`SamplingConfig`) may set above the training's;
+    sampling: those settings, as applied.
     """
 
     model: Any
@@ -46,6 +49,38 @@ class Checkpoint:
     stage2: dict | None = None
     geometry_config: dict = field(default_factory=dict)
     plane_keep: float = 1.0
+    sampling: dict = field(default_factory=dict)
+
+
+@dataclass
+class SamplingConfig:
+    """How stage 1 samples a frame at inference, against how it trained. density: the points drawn from a frame
+    and the keypoints (the first sampling level's points, where the network predicts) are both this many times the
+    training's, rounded up to a multiple of 64; the neighbourhoods keep their radii. Above 1 a small object gets
+    more predictions (RESULTS.md, ``checkpoints/lm8.pt``) for some milliseconds a frame (BENCHMARKS.md)."""
+
+    density: float = 1.0
+
+    def __post_init__(self):
+        try:
+            self.density = float(self.density)
+        except (TypeError, ValueError):
+            raise DetectorError(f"sampling.density must be a number, got {self.density!r}") from None
+        if not 0.25 <= self.density <= 8:
+            raise DetectorError(f"sampling.density must be in [0.25, 8], got {self.density}")
+
+    @classmethod
+    def from_dict(cls, d: dict | None) -> "SamplingConfig":
+        """From a model file's or a --set's settings; a one-line DetectorError for an unknown key."""
+        d = dict(d or {})
+        unknown = set(d) - {f.name for f in fields(cls)}
+        if unknown:
+            raise DetectorError(f"unknown sampling option '{sorted(unknown)[0]}' (sampling.density)")
+        return cls(**d)
+
+    def scaled(self, count: int) -> int:
+        """``count`` (points or keypoints of training) at this density: itself at 1, else a multiple of 64."""
+        return int(count) if self.density == 1 else max(64, 64 * math.ceil(count * self.density / 64))
 
 
 def build_model(payload: dict, path: Path, device: str | torch.device):
@@ -61,9 +96,11 @@ def build_model(payload: dict, path: Path, device: str | torch.device):
     return model.to(device), cfg
 
 
-def load_checkpoint(path: str | Path, device: str | torch.device = "cpu") -> Checkpoint:
+def load_checkpoint(path: str | Path, device: str | torch.device = "cpu", sampling: dict | None = None) -> Checkpoint:
     """Load a checkpoint for inference: the model (both stages of a two-stage one) in eval mode on ``device``
-    plus its metadata."""
+    plus its metadata. Stage 1 samples as the model file's sampling settings say (:class:`SamplingConfig`; a model
+    file without them samples as it trained), with ``sampling`` (e.g. ``{"density": 1}``, from ``--set``) over
+    them."""
     path = Path(path)
     payload = read_checkpoint(path, "cpu")
     stage2_net, stage2 = None, None
@@ -77,14 +114,26 @@ def load_checkpoint(path: str | Path, device: str | torch.device = "cpu") -> Che
         payload = payload["stage1"]
     else:
         extra_top = {}
+    chosen = SamplingConfig.from_dict({**(extra_top.get("sampling_config") or {}), **(sampling or {})})
+    num_points = chosen.scaled(int(payload["num_points"]))
+    if chosen.density != 1:
+        stored = payload["model_config"]
+        npoints = list(stored.get("npoints") or [])
+        if not npoints:
+            raise DetectorError(f"{path}: the model config lacks its sampling levels (npoints)")
+        keypoints = min(chosen.scaled(npoints[0]), num_points)
+        if len(npoints) > 1 and keypoints < npoints[1]:
+            raise DetectorError(f"sampling.density {chosen.density} leaves {keypoints} keypoints, under the "
+                                f"network's next level's {npoints[1]}")
+        payload = {**payload, "model_config": {**stored, "npoints": [keypoints, *npoints[1:]]}}
     model, cfg = build_model(payload, path, device)
     model.eval()
     return Checkpoint(model=model, model_config=cfg, class_ids=list(payload["class_ids"]),
-                      objects=payload["objects"], num_points=int(payload["num_points"]), step=int(payload["step"]),
+                      objects=payload["objects"], num_points=num_points, step=int(payload["step"]),
                       extra=payload.get("extra") or {}, normalisation=payload.get("normalisation") or {},
                       stage2_net=stage2_net, stage2=stage2,
                       geometry_config=dict(extra_top.get("geometry_config") or {}),
-                      plane_keep=trained_plane_keep(payload))
+                      plane_keep=trained_plane_keep(payload), sampling=vars(chosen))
 
 
 def trained_plane_keep(payload: dict) -> float:
@@ -96,7 +145,8 @@ def trained_plane_keep(payload: dict) -> float:
 
 def save_two_stage(path: str | Path, stage1: dict, stage2: dict, extra: dict | None = None) -> Path:
     """Write a two-stage model file (version 3) from a stage-1 checkpoint dict and a stage-2 part, without their
-    training states (what inference needs only). extra: e.g. {"geometry_config": {...}, "timing": ...}."""
+    training states (what inference needs only). extra: e.g. {"geometry_config": {...}, "sampling_config":
+    {"density": 1.25}, "timing": ...}."""
     d = {k: v for k, v in stage1.items() if k not in ("format", "version", "train_state")}
     p = {k: v for k, v in stage2.items() if k != "train_state"}
     path = Path(path)

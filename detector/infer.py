@@ -139,6 +139,24 @@ def geometry_config(tau: float, icp: bool, base: GeometryConfig | None = None) -
     return replace(base or GeometryConfig(), tau=tau, icp=icp)
 
 
+def split_sets(sets: list[str] | None) -> tuple[list[str], dict]:
+    """eval's and predict's ``--set`` options, ``["geometry.KEY=VALUE", "sampling.KEY=VALUE", ...]``: (the geometry
+    ones, for :func:`checkpoint_geometry_config`; the sampling ones as ``{"KEY": value}``, for
+    :func:`detector.checkpoint.load_checkpoint`). Any other section is a one-line DetectorError."""
+    geometry, sampling = [], {}
+    for pair in sets or []:
+        (key, value), = parse_set_options([pair]).items()
+        head, _, rest = key.partition(".")
+        if head == "sampling" and rest:
+            sampling[rest] = value
+        elif head == "geometry" and rest:
+            geometry.append(pair)
+        else:
+            raise DetectorError(f"--set {key}: eval and predict take geometry and sampling settings only (--set "
+                                "geometry.KEY=VALUE, --set sampling.density=VALUE)")
+    return geometry, sampling
+
+
 def checkpoint_geometry_config(ckpt, tau: float | None, icp: bool, min_score: float | None = None,
                                sets: list[str] | None = None) -> GeometryConfig:
     """The geometry settings of a checkpoint (those stored with a two-stage model, e.g. its thresholds), with the CLI's

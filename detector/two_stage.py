@@ -19,7 +19,7 @@ from pathlib import Path
 
 import yaml
 
-from detector.checkpoint import save_two_stage
+from detector.checkpoint import SamplingConfig, save_two_stage
 from detector.config import config_to_dict, load_preset, load_yaml
 from detector.errors import DetectorError
 from detector.data.frames import FrameSource
@@ -30,7 +30,7 @@ from detector.stage2.train import STAGE2_RESUME_FREE_KEYS, load_stage2_config, s
 from detector.training.checkpoint_file import read_checkpoint
 from detector.training.resume import check_resumable
 
-SECTIONS = ("stage1", "stage2", "geometry", "infer")
+SECTIONS = ("stage1", "stage2", "geometry", "infer", "sampling")
 #: Older names of the sections (in run folders' two_stage.yaml and in ``--set``): ``pose`` held the geometry settings.
 OLD_SECTIONS = {"pose": "geometry"}
 #: The stages' run folders, and their older names.
@@ -39,20 +39,22 @@ OLD_STAGE_DIRS = ("detect", "pose")
 
 #: The defaults of each section (``detector/presets/two-stage.yaml``): stage 1's overrides of the cpu training
 #: preset (centre votes only), stage 2's of Stage2TrainConfig, and the inference settings stored in the model file:
-#: geometry (keys of detector.geometry.types.GeometryConfig) and infer (stage 2's, detector.stage2.poser.PoserConfig).
+#: geometry (keys of detector.geometry.types.GeometryConfig), infer (stage 2's, detector.stage2.poser.PoserConfig)
+#: and sampling (stage 1's at inference, detector.checkpoint.SamplingConfig).
 DEFAULTS: dict[str, dict] = {k: dict(v or {}) for k, v in load_preset("two-stage").items()}
 
 
 @dataclass
 class TwoStageConfig:
     """stage1: dotted overrides of the cpu TrainConfig; stage2: dotted overrides of Stage2TrainConfig;
-    geometry: GeometryConfig values and infer: stage 2's PoserConfig values, stored in model.pt (the defaults of eval
-    and predict)."""
+    geometry: GeometryConfig values, infer: stage 2's PoserConfig values and sampling: SamplingConfig values (stage
+    1's at inference), stored in model.pt (the defaults of eval and predict)."""
 
     stage1: dict = field(default_factory=dict)
     stage2: dict = field(default_factory=dict)
     geometry: dict = field(default_factory=dict)
     infer: dict = field(default_factory=dict)
+    sampling: dict = field(default_factory=dict)
 
     def resolved(self):
         """(TrainConfig of stage 1, Stage2TrainConfig of stage 2, geometry settings, stage-2 inference settings),
@@ -69,11 +71,16 @@ class TwoStageConfig:
                 raise DetectorError(f"two-stage config: unknown {name} option '{unknown[0]}'")
         return s1, s2, geometry, asdict(PoserConfig(**infer))
 
+    def resolved_sampling(self) -> dict:
+        """Stage 1's sampling at inference (:class:`detector.checkpoint.SamplingConfig` values), checked."""
+        return vars(SamplingConfig.from_dict({**DEFAULTS["sampling"], **self.sampling}))
+
 
 def load_two_stage_config(path: str | Path | None = None, overrides: dict | None = None) -> TwoStageConfig:
-    """A TwoStageConfig from a YAML file (keys stage1, stage2, geometry, infer) and ``--set`` overrides such as
-    ``{"stage2.steps": 3000, "stage1.lr": 1e-3, "geometry.tau": 0.5, "infer.verify": 8}``. The older section name
-    ``pose`` (:data:`OLD_SECTIONS`) is read as ``geometry``, in the file and in the overrides."""
+    """A TwoStageConfig from a YAML file (keys stage1, stage2, geometry, infer, sampling) and ``--set`` overrides
+    such as ``{"stage2.steps": 3000, "stage1.lr": 1e-3, "geometry.tau": 0.5, "infer.verify": 8, "sampling.density":
+    1.25}``. The older section name ``pose`` (:data:`OLD_SECTIONS`) is read as ``geometry``, in the file and in the
+    overrides."""
     data: dict = {k: {} for k in SECTIONS}
     if path is not None:
         path = Path(path)
@@ -86,11 +93,12 @@ def load_two_stage_config(path: str | Path | None = None, overrides: dict | None
         head, _, rest = key.partition(".")
         head = OLD_SECTIONS.get(head, head)
         if head not in data or not rest:
-            raise DetectorError(f"unknown two-stage option '{key}' (use stage1.KEY, stage2.KEY, geometry.KEY or "
-                                "infer.KEY)")
+            raise DetectorError(f"unknown two-stage option '{key}' (use stage1.KEY, stage2.KEY, geometry.KEY, "
+                                "infer.KEY or sampling.KEY)")
         data[head][rest] = value
     cfg = TwoStageConfig(**data)
     cfg.resolved()
+    cfg.resolved_sampling()
     return cfg
 
 
@@ -146,7 +154,8 @@ def train_two_stage(cfg: TwoStageConfig, train_path: str | Path, out_dir: str | 
     if list(part["class_ids"]) != list(stage1["class_ids"]):
         raise DetectorError(f"the stages learned different objects ({stage1['class_ids']} vs {part['class_ids']})")
     return save_two_stage(out_dir / "model.pt", stage1, {**part, "infer_config": infer},
-                          {"geometry_config": geometry, "train_file": str(train_path)})
+                          {"geometry_config": geometry, "sampling_config": cfg.resolved_sampling(),
+                           "train_file": str(train_path)})
 
 
 def _leaves(d: dict, prefix: str = "") -> dict:

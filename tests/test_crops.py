@@ -544,8 +544,9 @@ def test_two_stage_train_resume_eval_predict(labels, tmp_path):
     result; a stage-2 run file alone is refused clearly."""
     import json
 
-    from detector.checkpoint import load_checkpoint
+    from detector.checkpoint import SamplingConfig, load_checkpoint
     from detector.cli.app import app as det_app
+    from detector.stage1.predictor import network_predictor
     from detector.two_stage import DEFAULTS
 
     tau = DEFAULTS["geometry"]["tau"]  # the two-stage default, stored in the model file
@@ -559,7 +560,7 @@ def test_two_stage_train_resume_eval_predict(labels, tmp_path):
     assert not out.exists()
     r = run.invoke(det_app, ["train", str(labels), "--out", str(out), *tiny_two_stage_args(2, 3),
                              "--set", "stage2.keep_every=2", "--set", "stage1.val_every=1", "--val", str(labels),
-                             "--device", "cpu", "--seed", "3", "--workers", "0"])
+                             "--device", "cpu", "--seed", "3", "--workers", "0", "--set", "sampling.density=1.5"])
     assert r.exit_code == 0, r.output
     assert all((out / f).is_file() for f in ("model.pt", "stage1/last.pt", "stage2/last.pt"))
     assert (out / "stage1" / "best.pt").is_file()  # --val reached stage 1
@@ -572,6 +573,22 @@ def test_two_stage_train_resume_eval_predict(labels, tmp_path):
     assert ck.stage2["class_ids"] == ck.class_ids
     with LabelFile(labels) as lf:  # the working volume its points came from, for predict
         assert ck.extra["max_depth"] == pytest.approx(lf.attrs["max_depth"]) and ck.extra["max_depth"] > 0
+        frame = lf.frame(0)
+    # stage 1 samples at the model file's density (--set at training): more points and keypoints than it trained on,
+    # the deeper levels as trained; sampling.density=1 (the default) gives the training's back, and the network
+    # predicts at each
+    density = SamplingConfig(1.5)
+    assert DEFAULTS["sampling"]["density"] == 1 and ck.sampling == {"density": 1.5}
+    trained = load_checkpoint(out / "model.pt", sampling={"density": 1})
+    assert trained.num_points == 1024 and ck.num_points == density.scaled(1024) > 1024
+    assert ck.model_config.npoints[0] == min(density.scaled(trained.model_config.npoints[0]), ck.num_points)
+    assert ck.model_config.npoints[0] > trained.model_config.npoints[0]
+    assert ck.model_config.npoints[1:] == trained.model_config.npoints[1:]
+    for model in (ck, trained):
+        preds = network_predictor(model)(frame)
+        assert len(preds.xyz) == model.model_config.npoints[0]
+        points = {tuple(row) for row in np.asarray(frame.features[:, :3], np.float64)}
+        assert all(tuple(row) in points for row in preds.xyz)  # predictions sit on the frame's points
     # a setting that changes the result is refused on resume, for either stage (stage 1 is complete: checked first)
     for key in ("stage1.lr=0.01", "stage2.crop.radius=0.8", "stage1.num_points=512"):
         r = run.invoke(det_app, ["train", str(labels), "--out", str(out), "--resume", "--quiet", "--set", key])
@@ -620,8 +637,14 @@ def test_two_stage_train_resume_eval_predict(labels, tmp_path):
     assert r.exit_code == 0, r.output
     s = json.loads((rep / "report.json").read_text())
     assert not s["config"]["depth_check"] and s["config"]["tau"] == 0.3 and "depth_check" not in s["timing_ms"]
+    r = run.invoke(det_app, ["eval", str(out / "model.pt"), str(labels), "--out", str(rep), "--icp", "--quiet",
+                             "--frames", "2", "--set", "sampling.density=1", "--set", "geometry.tau=0.3"])
+    assert r.exit_code == 0, r.output
+    assert json.loads((rep / "report.json").read_text())["config"]["tau"] == 0.3
     for bad, word in (("geometry.depth_chek=false", "depth_check"), ("depth_check=false", "geometry.KEY"),
-                      ("geometry.other_classes=abc", "number")):
+                      ("geometry.other_classes=abc", "number"), ("sampling.densty=2", "sampling.density"),
+                      ("sampling.density=20", "[0.25, 8]"), ("sampling.density=abc", "number"),
+                      ("stage1.lr=0.1", "geometry and sampling")):
         r = run.invoke(det_app, ["eval", str(out / "model.pt"), str(labels), "--out", str(rep), "--set", bad])
         assert r.exit_code == 2 and word in r.stderr and len(r.stderr.strip().splitlines()) == 1, r.stderr
     ds = labels.parent / "ds" / "train_pbr" / "000000" / "000001"

@@ -9,6 +9,7 @@ from detector.stage1.ops import (
     ball_query,
     compute_indices_torch,
     farthest_point_sample,
+    EXACT_FPS_MAX_POINTS,
     fps_numpy,
     group,
     precompute_indices,
@@ -51,6 +52,31 @@ def test_fps_matches_naive_loop_both_paths(seed):
     got = farthest_point_sample(torch.from_numpy(p)[None].repeat(2, 1, 1), 100)
     np.testing.assert_array_equal(got[0].numpy(), ref)
     np.testing.assert_array_equal(got[1].numpy(), ref)
+
+
+def fps_gaps(p: np.ndarray, order: np.ndarray) -> np.ndarray:
+    """For each step after the first: how much farther (squared, float64) the farthest point was from those chosen
+    before it than the point chosen. An exact FPS sequence has all of them 0 (up to float32 rounding)."""
+    p = p.astype(np.float64)
+    dist = ((p - p[order[0]]) ** 2).sum(1)
+    gaps = []
+    for i in order[1:]:
+        gaps.append(dist.max() - dist[i])
+        dist = np.minimum(dist, ((p - p[i]) ** 2).sum(1))
+    return np.array(gaps)
+
+
+def test_fast_fps_on_large_clouds_is_exact_and_deterministic():
+    p = cloud(EXACT_FPS_MAX_POINTS + 1000, 7) * np.float32([1.5, 1.0, 0.3]) + np.float32([0, 0, 1.0])
+    order = fps_numpy(p, 512)
+    assert order.shape == (512,) and order.dtype == np.int64
+    assert len(set(order.tolist())) == 512  # distinct points
+    assert np.all(fps_gaps(p, order) <= 1e-6)  # each next point is a farthest one from those chosen
+    np.testing.assert_array_equal(fps_numpy(p, 512), order)  # a function of the cloud alone
+    # as spread as the textbook loop from index 0: the same covering radius
+    ref = naive_fps(p, 512)
+    cover = [np.sqrt(((p[:, None] - p[s][None]) ** 2).sum(-1)).min(1).max() for s in (order, ref)]
+    assert cover[0] == pytest.approx(cover[1], rel=0.1)
 
 
 def test_ball_query_membership_and_order():

@@ -39,9 +39,10 @@ def register(app: typer.Typer) -> None:
                                                         "BOP19 AR (default: the one the label file names)."),
         device: str = typer.Option("cpu", "--device", help="torch device, e.g. cpu or cuda."),
         seed: int = typer.Option(0, "--seed", help="Point sampling seed."),
-        sets: list[str] = typer.Option([], "--set", help="A geometry setting of the model file, e.g. --set "
-                                                         "geometry.depth_check=false (keys of "
-                                                         "detector.geometry.types.GeometryConfig)."),
+        sets: list[str] = typer.Option([], "--set", help="A geometry or sampling setting of the model file, e.g. "
+                                                         "--set geometry.depth_check=false (keys of "
+                                                         "detector.geometry.types.GeometryConfig) or --set "
+                                                         "sampling.density=1 (stage 1 samples as it trained)."),
         quiet: bool = typer.Option(False, "--quiet", help="No progress bar."),
     ) -> None:
         """Evaluate a checkpoint on a label file: ADD/ADD-S accuracy, F1, BOP19 AR, timings, BOP results CSV."""
@@ -49,14 +50,16 @@ def register(app: typer.Typer) -> None:
         from detector.checkpoint import load_checkpoint
         from detector.data.frames import open_label_file
         from detector.evaluate import evaluate
-        from detector.infer import check_label_objects, checkpoint_geometry_config, checkpoint_objects, checkpoint_poser
+        from detector.infer import (check_label_objects, checkpoint_geometry_config, checkpoint_objects,
+                                    checkpoint_poser, split_sets)
         from detector.stage1.predictor import network_predictor
 
         if frames is not None and frames < 1:
             raise DetectorError(f"--frames must be at least 1, got {frames}")
         if not 0 <= min_visib <= 1:
             raise DetectorError(f"--min-visib is a visible fraction in [0, 1], got {min_visib}")
-        ckpt = load_checkpoint(checkpoint, device)
+        sets, sampling = split_sets(sets)
+        ckpt = load_checkpoint(checkpoint, device, sampling)
         cfg = checkpoint_geometry_config(ckpt, tau, icp, min_score, sets)
         with open_label_file(data) as lf:
             n = lf.num_frames
@@ -96,19 +99,21 @@ def register(app: typer.Typer) -> None:
         max_depth: Optional[float] = typer.Option(None, "--max-depth",
                                                   help="Use the points up to this depth, metres (default: the "
                                                        "working volume the model was trained in, when it says)."),
-        sets: list[str] = typer.Option([], "--set", help="A geometry setting of the model file, e.g. --set "
-                                                         "geometry.depth_check=false (keys of "
-                                                         "detector.geometry.types.GeometryConfig)."),
+        sets: list[str] = typer.Option([], "--set", help="A geometry or sampling setting of the model file, e.g. "
+                                                         "--set geometry.depth_check=false (keys of "
+                                                         "detector.geometry.types.GeometryConfig) or --set "
+                                                         "sampling.density=1 (stage 1 samples as it trained)."),
     ) -> None:
         """Predict the poses in one frame: poses.json (metres) and poses.png (3D boxes)."""
         # lazy: torch and open3d load in seconds; `detector --help` and the other commands do not need them
         from detector.checkpoint import load_checkpoint
         from detector.infer import (checkpoint_geometry_config, checkpoint_max_depth, checkpoint_objects,
-                                    checkpoint_poser, colour_networks, colour_readers)
+                                    checkpoint_poser, colour_networks, colour_readers, split_sets)
         from detector.predict import load_input, predict
         from detector.stage1.predictor import network_predictor
 
-        ckpt = load_checkpoint(checkpoint, device)
+        sets, sampling = split_sets(sets)
+        ckpt = load_checkpoint(checkpoint, device, sampling)
         cfg = checkpoint_geometry_config(ckpt, tau, icp, min_score, sets)
         depth = checkpoint_max_depth(ckpt, max_depth)
         inp = load_input(input, K=K, depth_scale=depth_scale, camera=camera, rgb=rgb, seed=seed, max_depth=depth)

@@ -1,16 +1,21 @@
 """PointNet++ sampling and neighbour ops: farthest point sampling, ball query, grouping, 3-NN interpolation.
 
-Two paths compute the same indices:
+Two paths compute the indices:
 
 * :func:`precompute_indices` (numpy, one cloud): exact FPS from ``fpsample`` and neighbours from a
-  ``pykdtree`` KD-tree; meant for DataLoader workers on CPU, where sampling would otherwise dominate the
-  forward pass.
+  ``pykdtree`` KD-tree; meant for DataLoader workers and inference on CPU, where sampling would otherwise dominate
+  the forward pass.
 * :func:`compute_indices_torch` (torch, batched, any device): the GPU path, or when no indices are given.
 
-Conventions shared by both (so they agree up to floating-point near-ties):
+Conventions shared by both (so on clouds of up to :data:`EXACT_FPS_MAX_POINTS` points they give the same
+indices, up to floating-point near-ties):
 
 * FPS starts at index 0 and each next index is the point farthest (squared Euclidean) from those chosen;
-  ties go to the lowest index.
+  ties go to the lowest index. On clouds of more than :data:`EXACT_FPS_MAX_POINTS` points the numpy path uses
+  fpsample's tree-based FPS instead: as exact (every next point is a farthest one) and 12 to 22 times faster, but
+  started at a point of its own choosing (fpsample 0.3 reads its ``start_idx`` as a place in its tree, not in the
+  cloud; the start is still a function of the cloud alone). The two paths then sample equally spread points, not
+  the same ones.
 * Ball query = the ``nsample`` nearest points within ``radius`` of the centre, nearest first; missing slots
   repeat the nearest one (the centre itself, since centres are sampled from the points).
 * 3-NN weights are normalised inverse Euclidean distances ``1 / (d + 1e-8)``.
@@ -31,6 +36,14 @@ from detector.errors import DetectorError
 
 #: Added to 3-NN distances before inverting them (metres).
 INTERP_EPS = 1e-8
+#: Clouds of up to this many points are sampled by fpsample's FPS loop from index 0: the cpu preset's 4096 points,
+#: on which every shipped model trained and was measured, so their training runs and numbers stay as they were.
+#: Larger clouds (denser inference, ``sampling.density``; the paper preset's 16384 points) take fpsample's
+#: tree-based exact FPS (``bucket_fps_kdline``): 2.5 ms instead of 39 for 2048 of 8192 points (BENCHMARKS.md).
+EXACT_FPS_MAX_POINTS = 4096
+#: Height of that FPS's tree (fpsample suggests 3-5 for small clouds, 7-9 for large ones; 4 is the fastest of
+#: 3-6 for 4096 and 8192 points here).
+TREE_FPS_HEIGHT = 4
 
 Spec = tuple[int, float, int]
 
@@ -49,13 +62,17 @@ def check_specs(num_points: int, specs: list[Spec]) -> None:
 
 
 def fps_numpy(xyz: np.ndarray, npoint: int) -> np.ndarray:
-    """Exact farthest point sampling starting at index 0 (fpsample).
+    """Exact farthest point sampling (fpsample): from index 0 on clouds of up to :data:`EXACT_FPS_MAX_POINTS`
+    points, from a point fpsample's tree picks on larger ones (the module's conventions).
 
     xyz: (N, 3) float32 metres. Returns (npoint,) int64 indices in sampling order.
     """
     if npoint == len(xyz) == 1:
         return np.zeros(1, np.int64)
-    return fpsample.fps_sampling(np.ascontiguousarray(xyz, dtype=np.float32), npoint, start_idx=0).astype(np.int64)
+    xyz = np.ascontiguousarray(xyz, dtype=np.float32)
+    if len(xyz) > EXACT_FPS_MAX_POINTS:
+        return fpsample.bucket_fps_kdline_sampling(xyz, npoint, h=TREE_FPS_HEIGHT, start_idx=0).astype(np.int64)
+    return fpsample.fps_sampling(xyz, npoint, start_idx=0).astype(np.int64)
 
 
 def ball_query_numpy(xyz: np.ndarray, centres: np.ndarray, radius: float, nsample: int) -> np.ndarray:

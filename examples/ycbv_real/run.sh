@@ -90,8 +90,9 @@ for c in true false; do
     --out "$REP/simtest_colour_check_$c" --icp --quiet --set geometry.colour_check=$c
 done
 # 6c. the sampling seed (RESULTS.md): which points stage 1 sees and stage 2's RANSAC draws, seeds 0-7, for the
-#     default inference, ICP before its half turns and a stage-1 centre from 2 votes; mean and range of each
-for a in "default:" "before_half_turns:$OLD" "min_votes_2:$G.min_votes=2"; do
+#     default inference, ICP before its half turns, a stage-1 centre from 2 votes and stage 1 sampling 1.25 times as
+#     densely as it trained (RESULTS.md, lm8's "Stage 1's sampling density"); mean and range of each
+for a in "default:" "before_half_turns:$OLD" "min_votes_2:$G.min_votes=2" "density_1.25:sampling.density=1.25"; do
   name=${a%%:*}; sets=()
   for kv in ${a#*:}; do sets+=(--set "$kv"); done
   for seed in 0 1 2 3 4 5 6 7; do
