@@ -149,7 +149,8 @@ def main() -> None:
     from detector.checkpoint import load_checkpoint
     from detector.data.frames import object_table_dict
     from detector.geometry.types import ObjectInfo
-    from detector.infer import split_sets
+    from detector.errors import DetectorError
+    from detector.infer import checkpoint_geometry_config, split_sets
 
     if args.threads:
         torch.set_num_threads(args.threads)
@@ -160,14 +161,23 @@ def main() -> None:
             objects_dict = object_table_dict(lf.objects)
             objects = ObjectInfo.from_table(lf.objects)
         results = []
-        geometry_sets, sampling = split_sets(args.sets)
-        ckpts = [("checkpoint", load_checkpoint(args.checkpoint, args.device, sampling))] if args.checkpoint else \
-            [(p, random_checkpoint(p, objects_dict, args.device)) for p in args.preset]
+        try:
+            geometry_sets, sampling = split_sets(args.sets)
+            if sampling and not args.checkpoint:
+                raise DetectorError("--set sampling.* needs --checkpoint (the presets' random networks sample as built)")
+            ckpts = [("checkpoint", load_checkpoint(args.checkpoint, args.device, sampling))] if args.checkpoint else \
+                [(p, random_checkpoint(p, objects_dict, args.device)) for p in args.preset]
+            for _, ck in ckpts:  # a bad --set geometry.* is a one-line error before any timing
+                if ck.stage2_net is not None:
+                    checkpoint_geometry_config(ck, None, True, sets=geometry_sets)
+        except DetectorError as e:
+            raise SystemExit(f"bench_infer.py: {e}") from None
         for name, ck in ckpts:
             if ck.stage2_net is not None:  # a two-stage model: its whole pipeline on its own predictions
                 t = two_stage_times(ck, frames, args.device, geometry_sets)
                 ms = {k: round(1000 * v, 1) for k, v in t.items() if k not in ("detections", "crops")}
                 res = {"model": f"{name} (two-stage)", "device": args.device, "threads": torch.get_num_threads(),
+                       "sampling": {**ck.sampling, "points": ck.num_points, "keypoints": ck.model_config.npoints[0]},
                        "frame_points": int(statistics.mean(len(f.features) for f in frames)),
                        "detections_per_frame": t["detections"], "stage2_crops_per_frame": t["crops"], "ms": ms,
                        "fps": round(1000 / ms["total"], 2)}

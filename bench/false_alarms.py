@@ -49,10 +49,10 @@ def main() -> None:
     try:
         sets, sampling = split_sets(a.sets)
         ckpt = load_checkpoint(a.ckpt, "cpu", sampling)
+        cfg = checkpoint_geometry_config(ckpt, None, not a.no_icp, None, sets)
     except DetectorError as e:
-        ap.error(str(e))
+        raise SystemExit(f"false_alarms.py: {e}") from None
     objects, names = checkpoint_objects(ckpt)
-    cfg = checkpoint_geometry_config(ckpt, None, not a.no_icp, None, sets)
     predictor = network_predictor(ckpt, 0)
     poser = checkpoint_poser(ckpt, objects, "cpu", 0)
     depth = checkpoint_max_depth(ckpt, a.max_depth)

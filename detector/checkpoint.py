@@ -63,6 +63,8 @@ class SamplingConfig:
 
     def __post_init__(self):
         try:
+            if isinstance(self.density, bool):
+                raise TypeError
             self.density = float(self.density)
         except (TypeError, ValueError):
             raise DetectorError(f"sampling.density must be a number, got {self.density!r}") from None
@@ -80,7 +82,9 @@ class SamplingConfig:
 
     def scaled(self, count: int) -> int:
         """``count`` (points or keypoints of training) at this density: itself at 1, else a multiple of 64."""
-        return int(count) if self.density == 1 else max(64, 64 * math.ceil(count * self.density / 64))
+        if self.density == 1:
+            return int(count)
+        return max(64, 64 * math.ceil(round(count * self.density / 64, 9)))  # 3200 x 1.1 is 3520, not 3584
 
 
 def build_model(payload: dict, path: Path, device: str | torch.device):

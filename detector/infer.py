@@ -170,7 +170,7 @@ def checkpoint_geometry_config(ckpt, tau: float | None, icp: bool, min_score: fl
     dotted = parse_set_options(sets)
     for key in dotted:
         if not key.startswith("geometry."):
-            raise DetectorError(f"--set {key}: eval and predict take geometry settings only (--set geometry.KEY=VALUE)")
+            raise DetectorError(f"--set {key}: not a geometry setting (--set geometry.KEY=VALUE)")
     if dotted:
         base = apply_set_options(base, {k.split(".", 1)[1]: v for k, v in dotted.items()}, "--set geometry")
     if min_score is not None:

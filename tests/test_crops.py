@@ -581,8 +581,8 @@ def test_two_stage_train_resume_eval_predict(labels, tmp_path):
     assert DEFAULTS["sampling"]["density"] == 1 and ck.sampling == {"density": 1.5}
     trained = load_checkpoint(out / "model.pt", sampling={"density": 1})
     assert trained.num_points == 1024 and ck.num_points == density.scaled(1024) > 1024
-    assert ck.model_config.npoints[0] == min(density.scaled(trained.model_config.npoints[0]), ck.num_points)
-    assert ck.model_config.npoints[0] > trained.model_config.npoints[0]
+    assert ck.model_config.npoints[0] == density.scaled(trained.model_config.npoints[0]) > \
+        trained.model_config.npoints[0]
     assert ck.model_config.npoints[1:] == trained.model_config.npoints[1:]
     for model in (ck, trained):
         preds = network_predictor(model)(frame)
@@ -600,6 +600,7 @@ def test_two_stage_train_resume_eval_predict(labels, tmp_path):
     assert yaml.safe_load((out / "two_stage.yaml").read_text())["stage2"]["cache_mb"] == 0.5
     rows = (out / "stage2" / "metrics.csv").read_text().strip().splitlines()[1:]
     assert [int(x.split(",")[0]) for x in rows] == [1, 2, 3, 4, 5]
+    assert load_checkpoint(out / "model.pt").sampling == {"density": 1.5}  # the run's own setting, kept
     assert len((out / "stage1" / "metrics.csv").read_text().strip().splitlines()) == 3
     # the kept stage-2 snapshots (keep_every 2, kept across the resume): weights without optimiser state
     from detector.training.checkpoint_file import read_checkpoint

@@ -79,6 +79,18 @@ def test_fast_fps_on_large_clouds_is_exact_and_deterministic():
     assert cover[0] == pytest.approx(cover[1], rel=0.1)
 
 
+def test_clouds_up_to_the_cpu_presets_size_keep_the_loop_from_index_0_and_larger_take_the_tree():
+    import fpsample
+
+    from detector.stage1.ops import TREE_FPS_HEIGHT
+
+    p = cloud(EXACT_FPS_MAX_POINTS, 8)
+    np.testing.assert_array_equal(fps_numpy(p, 256), naive_fps(p, 256))  # the shipped models' training and numbers
+    q = cloud(EXACT_FPS_MAX_POINTS + 1, 8)
+    tree = fpsample.bucket_fps_kdline_sampling(q, 256, h=TREE_FPS_HEIGHT, start_idx=0).astype(np.int64)
+    np.testing.assert_array_equal(fps_numpy(q, 256), tree)
+
+
 def test_ball_query_membership_and_order():
     p = cloud(300, 2)
     centres_idx = naive_fps(p, 40)

@@ -17,11 +17,12 @@ CHECKPOINTS = Path(__file__).resolve().parents[1] / "checkpoints"
 def test_density_scales_counts_to_multiples_of_64_and_one_keeps_them():
     assert SamplingConfig(1).scaled(1000) == 1000  # as trained, whatever the count
     assert SamplingConfig(1.25).scaled(4096) == 5120 and SamplingConfig(1.25).scaled(1024) == 1280
+    assert SamplingConfig(1.1).scaled(3200) == 3520 and SamplingConfig(1.12).scaled(4800) == 5376  # exact products
     for density in (0.3, 1.1, 1.5, 2, 3.7):
         for count in (100, 1024, 4096):
             n = SamplingConfig(density).scaled(count)
             assert n % 64 == 0 and count * density <= n < count * density + 64
-    for bad in (0, 0.1, 9, "abc", None):
+    for bad in (0, 0.1, 9, "abc", None, True, [1]):
         with pytest.raises(DetectorError):
             SamplingConfig(bad)
     with pytest.raises(DetectorError, match="unknown sampling option 'points'"):
@@ -37,14 +38,19 @@ def test_split_sets_routes_geometry_and_sampling_settings():
             split_sets([bad])
 
 
-def test_shipped_models_sample_as_their_files_say():
-    lm8 = load_checkpoint(CHECKPOINTS / "lm8.pt")
-    density = SamplingConfig(lm8.sampling["density"])
-    trained = load_checkpoint(CHECKPOINTS / "lm8.pt", sampling={"density": 1})
-    assert (trained.num_points, trained.model_config.npoints[0]) == (4096, 1024)  # what stage 1 trained on
-    assert (lm8.num_points, lm8.model_config.npoints[0]) == (density.scaled(4096), density.scaled(1024))
-    assert lm8.model_config.npoints[1:] == trained.model_config.npoints[1:]
-    # a model file without the setting samples as it trained
-    ycbv = load_checkpoint(CHECKPOINTS / "ycbv3.pt")
-    assert ycbv.sampling == {"density": 1.0}
-    assert ycbv.num_points == int(ycbv.extra["train_config"]["num_points"])
+def test_shipped_models_sample_as_they_trained_and_a_stored_density_is_applied(tmp_path):
+    import torch
+
+    for name in ("lm8.pt", "ycbv3.pt"):  # model files without the setting: as trained (4096 points, 1024 keypoints)
+        ck = load_checkpoint(CHECKPOINTS / name)
+        assert ck.sampling == {"density": 1.0}
+        assert (ck.num_points, ck.model_config.npoints[0]) == (4096, 1024)
+        assert ck.num_points == int(ck.extra["train_config"]["num_points"])
+    payload = torch.load(CHECKPOINTS / "lm8.pt", map_location="cpu", weights_only=False)
+    payload["extra"]["sampling_config"] = {"density": 1.25}
+    torch.save(payload, tmp_path / "dense.pt")
+    dense = load_checkpoint(tmp_path / "dense.pt")
+    assert dense.sampling == {"density": 1.25}
+    assert (dense.num_points, dense.model_config.npoints) == (5120, [1280, *ck.model_config.npoints[1:]])
+    back = load_checkpoint(tmp_path / "dense.pt", sampling={"density": 1})  # --set over the stored setting
+    assert (back.num_points, back.model_config.npoints[0]) == (4096, 1024)

@@ -15,7 +15,8 @@ indices, up to floating-point near-ties):
   fpsample's tree-based FPS instead: as exact (every next point is a farthest one) and 12 to 22 times faster, but
   started at a point of its own choosing (fpsample 0.3 reads its ``start_idx`` as a place in its tree, not in the
   cloud; the start is still a function of the cloud alone). The two paths then sample equally spread points, not
-  the same ones.
+  the same ones (a model on a GPU, which computes its indices in torch, samples such a cloud differently from one on
+  CPU).
 * Ball query = the ``nsample`` nearest points within ``radius`` of the centre, nearest first; missing slots
   repeat the nearest one (the centre itself, since centres are sampled from the points).
 * 3-NN weights are normalised inverse Euclidean distances ``1 / (d + 1e-8)``.
