@@ -46,7 +46,8 @@ def _summary_for(rows: list[dict], key: str, k_list=THRESHOLDS) -> dict:
 def evaluate(predictor: Predictor, label_path: str | Path, out_dir: str | Path, icp: bool = False,
              cfg: GeometryConfig | None = None, frames: list[int] | None = None, min_visib: float = 0.1,
              device: str = "cpu", progress: bool = False, poser=None, method: str = METHOD,
-             dataset_name: str | None = None, bop_dataset: str | Path | None = None, bop19: bool = True) -> dict:
+             dataset_name: str | None = None, bop_dataset: str | Path | None = None, bop19: bool = True,
+             sampling: dict | None = None) -> dict:
     """Evaluate ``predictor`` on a label file and write the report into ``out_dir``.
 
     Ground-truth instances with ``visib_fract < min_visib`` are ignored (neither missed nor matched). poser: a
@@ -57,7 +58,9 @@ def evaluate(predictor: Predictor, label_path: str | Path, out_dir: str | Path, 
     name, letters and digits only) and the label file's source split.
     BOP19 Average Recall (``bop19``): the BOP CSV's poses scored on the BOP dataset the label file was made from
     (``bop_dataset``, default the label file's source dataset), the targets of the evaluated images only; skipped
-    with the reason in summary["bop19"]["skipped"] when that folder is gone or cannot be scored.
+    with the reason in summary["bop19"]["skipped"] when that folder is gone or cannot be scored. sampling: how the
+    predictor's network sampled a frame (e.g. ``{"density": 1.0, "points": 4096, "keypoints": 1024}``), recorded
+    as summary["sampling"] (None: not recorded).
     Returns the summary written to report.json (per-object ADD accuracies at 10/15/30 % without and with ICP,
     F1 at 15 %, mean ms per stage, fps, and with ICP how many detections had their ICP pose accepted, rejected
     (it did not fit better, so the unrefined pose was kept) or skipped (too few points): "icp_refinement"; "bop19":
@@ -125,7 +128,7 @@ def evaluate(predictor: Predictor, label_path: str | Path, out_dir: str | Path, 
     if "skipped" not in scores:  # how the official toolkit can check these figures (report.md says it)
         scores["toolkit_dataset"] = toolkit_name if csv_name.split("_", 1)[1].startswith(f"{toolkit_name}-") else None
     return _finish(gt_rows, counts, times, table, cfg, keys, icp, str(label_path), num_frames, bop_rows, out_dir,
-                   device, icp_status if icp else None, csv_name, scores)
+                   device, icp_status if icp else None, csv_name, scores, sampling)
 
 
 def bop19_summary(bop_rows: list[dict], images: set[tuple[int, int]], root, split: str, argen_json: str = "",
@@ -149,7 +152,7 @@ def bop19_summary(bop_rows: list[dict], images: set[tuple[int, int]], root, spli
 
 
 def _finish(gt_rows, counts, times, table, cfg, keys, icp, label_file, num_frames, bop_rows, out_dir, device,
-            icp_status=None, csv_name="argen_argen-test.csv", bop19=None) -> dict:
+            icp_status=None, csv_name="argen_argen-test.csv", bop19=None, sampling=None) -> dict:
     """Aggregate per-instance rows into the summary, write the report files and return the summary."""
     objs, curves = [], {}
     for m, oid in enumerate(table.ids.tolist()):
@@ -181,6 +184,7 @@ def _finish(gt_rows, counts, times, table, cfg, keys, icp, label_file, num_frame
     timing_ms = {s: 1000 * float(np.mean([t.get(s, 0.0) for t in times])) if times else 0.0 for s in stages}
     timing_ms["total"] = 1000 * float(np.mean([t["total"] for t in times])) if times else 0.0
     summary = {"label_file": label_file, "num_frames": num_frames, "icp": icp, "config": asdict(cfg),
+               "sampling": sampling,
                "objects": objs, "mean": mean, "f1": f1, "timing_ms": timing_ms,
                "fps": 1000.0 / timing_ms["total"] if timing_ms["total"] > 0 else float("inf"),
                "device": device, "bop_csv": csv_name, "icp_refinement": icp_status,

@@ -631,6 +631,7 @@ def test_two_stage_train_resume_eval_predict(labels, tmp_path):
     assert r.exit_code == 0, r.output
     s = json.loads((rep / "report.json").read_text())
     assert s["config"]["centre_votes"] and s["config"]["tau"] == tau and "stage2" in s["timing_ms"]
+    assert s["sampling"] == {"density": 1.5, "points": ck.num_points, "keypoints": ck.model_config.npoints[0]}
     assert s["config"]["depth_check"] and "depth_check" in s["timing_ms"]
     # --set changes the model's geometry settings for this run; a wrong key or value is a one-line error
     r = run.invoke(det_app, ["eval", str(out / "model.pt"), str(labels), "--out", str(rep), "--icp", "--quiet",
@@ -641,7 +642,9 @@ def test_two_stage_train_resume_eval_predict(labels, tmp_path):
     r = run.invoke(det_app, ["eval", str(out / "model.pt"), str(labels), "--out", str(rep), "--icp", "--quiet",
                              "--frames", "2", "--set", "sampling.density=1", "--set", "geometry.tau=0.3"])
     assert r.exit_code == 0, r.output
-    assert json.loads((rep / "report.json").read_text())["config"]["tau"] == 0.3
+    s = json.loads((rep / "report.json").read_text())
+    assert s["config"]["tau"] == 0.3 and s["sampling"] == {"density": 1.0, "points": 1024, "keypoints":
+                                                             trained.model_config.npoints[0]}
     for bad, word in (("geometry.depth_chek=false", "depth_check"), ("depth_check=false", "geometry.KEY"),
                       ("geometry.other_classes=abc", "number"), ("sampling.densty=2", "sampling.density"),
                       ("sampling.density=20", "[0.25, 8]"), ("sampling.density=abc", "number"),
