@@ -95,3 +95,25 @@ def test_no_object_points_and_bad_config():
     assert parts["cls"] == pytest.approx(math.log(3), rel=1e-5)
     with pytest.raises(DetectorError, match="score"):
         LossConfig(score="cubic")
+
+
+def test_foreground_weight_is_the_weighted_mean_of_the_keypoints_cross_entropy():
+    out, target = make_case(seed=3, classes=3)
+    g = torch.Generator().manual_seed(4)
+    out["logits"] = torch.randn(out["logits"].shape, generator=g)  # a wrong, uncertain classifier
+    per_point = torch.nn.functional.cross_entropy(out["logits"].reshape(-1, 4), target["cls"].reshape(-1),
+                                                  reduction="none")
+    fg = (target["cls"].reshape(-1) > 0).float()
+    plain = multitask_loss(out, target, LossConfig(seg_only=True))[1]["cls"]
+    assert plain == pytest.approx(float(per_point.mean()), rel=1e-6)  # fg_weight 1: the paper's plain mean
+    for w in (0.5, 2.0, 3.0):
+        got = multitask_loss(out, target, LossConfig(seg_only=True, fg_weight=w))[1]["cls"]
+        weights = 1.0 + (w - 1.0) * fg
+        assert got == pytest.approx(float((weights * per_point).sum() / weights.sum()), rel=1e-6)
+    # object keypoints misclassified cost more with a larger weight, background ones less
+    wrong_fg = dict(out, logits=out["logits"].clone())
+    wrong_fg["logits"][..., 0] = 10.0  # everything called background: only the object keypoints are wrong
+    losses = [multitask_loss(wrong_fg, target, LossConfig(seg_only=True, fg_weight=w))[1]["cls"] for w in (1, 2, 4)]
+    assert losses[0] < losses[1] < losses[2]
+    with pytest.raises(DetectorError, match="fg_weight"):
+        LossConfig(fg_weight=0)

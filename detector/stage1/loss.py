@@ -2,6 +2,8 @@
 
     L = w_cls * CE(logits, cls) + w_offset * p* SmoothL1(offsets) + w_conf * p* MSE(confidence, target)
 
+(CE weighs an object keypoint ``fg_weight`` times a background one; 1 by default, the paper's plain mean.)
+
 ``CE`` averages over all keypoints; ``p*`` averages over object keypoints only (cls > 0; zero when a batch
 has none). The offset term compares predicted and true control points (equivalently offsets from the
 keypoint) in units of ``offset_unit`` metres (0.1 m, so the terms are of the order of the CE term) with
@@ -40,12 +42,15 @@ class LossConfig:
     offset_unit: float = 0.1  # metres per unit of the SmoothL1 argument
     beta: float = 0.1  # SmoothL1 beta, in offset units
     centre_only: bool = False  # regress (and score confidence on) the box centre only: a two-stage model's stage 1
+    fg_weight: float = 1.0  # an object keypoint's class cross-entropy weighs this many background ones (1: alike)
 
     def __post_init__(self) -> None:
         if self.score not in ("linear", "exp"):
             raise DetectorError(f"loss score must be 'linear' or 'exp', got '{self.score}'")
         if self.d_th <= 0 or self.offset_unit <= 0 or self.beta < 0:
             raise DetectorError("loss d_th and offset_unit must be positive and beta non-negative")
+        if not self.fg_weight > 0:
+            raise DetectorError(f"loss fg_weight must be positive, got {self.fg_weight}")
 
 
 def confidence_target(d3d: torch.Tensor, d_th: float, score: str = "linear", alpha: float = 2.0) -> torch.Tensor:
@@ -77,7 +82,11 @@ def multitask_loss(out: dict, target: dict, cfg: LossConfig, pos_count: torch.Te
     data-parallel training passes the global batch's count, at least 1, divided by the number of processes).
     """
     logits, cls = out["logits"], target["cls"].long()
-    ce = F.cross_entropy(logits.reshape(-1, logits.shape[-1]), cls.reshape(-1))
+    weight = None
+    if cfg.fg_weight != 1:  # the weighted mean: sum of w_class * CE over the keypoints / sum of their w_class
+        weight = torch.full((logits.shape[-1],), float(cfg.fg_weight), dtype=logits.dtype, device=logits.device)
+        weight[0] = 1.0
+    ce = F.cross_entropy(logits.reshape(-1, logits.shape[-1]), cls.reshape(-1), weight=weight)
     pos = (cls > 0).to(logits.dtype)
     n_pos = pos.sum().clamp(min=1.0) if pos_count is None else torch.as_tensor(pos_count, dtype=logits.dtype)
     true_offsets = target["control_points"].to(out["offsets"].dtype) - out["xyz"][:, :, None].detach()

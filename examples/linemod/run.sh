@@ -156,13 +156,14 @@ if [ "${TRAINING_LENGTH:-0}" = 1 ]; then
 fi
 
 # 8. stage 1 alone trained again beside runs/lm8's stage 2 (about 15 minutes each; RESULTS.md): its class loss
-#    weighted twice (`stage1.loss.w_cls=2`, tried, not kept), a second seed of the default (seed 1) and trained on
+#    weighted twice (`stage1.loss.w_cls=2`, tried, not kept), a second seed of the default (seed 1), trained on
 #    1.25 times the points and keypoints (5120 and 1280, sampled at inference as trained: "Stage 1's sampling
-#    density"; tried, not kept), each scored on both test and both validation captures and on the real frames
+#    density"; tried, not kept) and with object keypoints weighing twice the background ones in its class loss
+#    (`stage1.loss.fg_weight=2`), each scored on both test and both validation captures and on the real frames
 #    without LineMOD objects. Only with STAGE1_VARIANTS=1.
 if [ "${STAGE1_VARIANTS:-0}" = 1 ]; then
   DENSE="dense:num_points: 5120"$'\n'"  model.npoints: [1280, 256, 128, 64, 32]"
-  for v in "wcls2:loss.w_cls: 2.0" "seed1:seed: 1" "$DENSE"; do
+  for v in "wcls2:loss.w_cls: 2.0" "seed1:seed: 1" "$DENSE" "fg2:loss.fg_weight: 2.0"; do
     r=runs/lm8-s1-${v%%:*}
     train_beside stage2 "$r" "$(printf 'stage1:\n  %s\nstage2:\n  keep_every: 3000' "${v#*:}")"
     eval_captures "$r"
