@@ -177,7 +177,7 @@ def main() -> None:
                 t = two_stage_times(ck, frames, args.device, geometry_sets)
                 ms = {k: round(1000 * v, 1) for k, v in t.items() if k not in ("detections", "crops")}
                 res = {"model": f"{name} (two-stage)", "device": args.device, "threads": torch.get_num_threads(),
-                       "sampling": {**ck.sampling, "points": ck.num_points, "keypoints": ck.model_config.npoints[0]},
+                       "sampling": ck.sampling_used,
                        "frame_points": int(statistics.mean(len(f.features) for f in frames)),
                        "detections_per_frame": t["detections"], "stage2_crops_per_frame": t["crops"], "ms": ms,
                        "fps": round(1000 / ms["total"], 2)}

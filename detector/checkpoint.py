@@ -51,6 +51,12 @@ class Checkpoint:
     plane_keep: float = 1.0
     sampling: dict = field(default_factory=dict)
 
+    @property
+    def sampling_used(self) -> dict:
+        """How stage 1 samples a frame, for reports: the sampling settings plus the points drawn and the keypoints
+        predicted at, e.g. ``{"density": 1.0, "points": 4096, "keypoints": 1024}``."""
+        return {**self.sampling, "points": self.num_points, "keypoints": self.model_config.npoints[0]}
+
 
 @dataclass
 class SamplingConfig:
@@ -125,7 +131,7 @@ def load_checkpoint(path: str | Path, device: str | torch.device = "cpu", sampli
         npoints = list(stored.get("npoints") or [])
         if not npoints:
             raise DetectorError(f"{path}: the model config lacks its sampling levels (npoints)")
-        keypoints = min(chosen.scaled(npoints[0]), num_points)
+        keypoints = chosen.scaled(npoints[0])  # at most num_points: training has npoints[0] <= num_points
         if len(npoints) > 1 and keypoints < npoints[1]:
             raise DetectorError(f"sampling.density {chosen.density} leaves {keypoints} keypoints, under the "
                                 f"network's next level's {npoints[1]}")

@@ -70,7 +70,7 @@ def register(app: typer.Typer) -> None:
         s = evaluate(network_predictor(ckpt, seed), data, out, icp=icp, cfg=cfg, device=device,
                      frames=list(range(min(n, frames or n))), min_visib=min_visib, progress=not quiet,
                      poser=poser, method=method, dataset_name=dataset_name, bop_dataset=bop_dataset,
-                     sampling={**ckpt.sampling, "points": ckpt.num_points, "keypoints": ckpt.model_config.npoints[0]})
+                     sampling=ckpt.sampling_used)
         key = "icp" if icp else "noicp"
         b = s["bop19"]
         ar = f"BOP19 AR: {b['bop19_average_recall']:.3f}  " if "skipped" not in b else ""
