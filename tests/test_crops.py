@@ -716,9 +716,10 @@ def test_a_run_started_under_older_defaults_resumes_with_its_own_settings(labels
     del cfg["stage1"]["colour"], cfg["stage2"]["crop.neighbour"]  # as a run's file reads when these were defaults
     (out / "two_stage.yaml").write_text(yaml.safe_dump(cfg))
     (out / "model.pt").unlink()
-    # a setting added since the run was saved (stage 1's plane_keep) reads as the value the run was trained with
+    # settings added since the run was saved (stage 1's plane_keep and loss.fg_weight) read as the values the run
+    # was trained with
     payload = torch.load(out / "stage1" / "last.pt", map_location="cpu", weights_only=False)
-    del payload["train_state"]["config"]["plane_keep"]
+    del payload["train_state"]["config"]["plane_keep"], payload["train_state"]["config"]["loss"]["fg_weight"]
     torch.save(payload, out / "stage1" / "last.pt")
     today = DEFAULTS["stage1"].get("colour", "light")
     r = run.invoke(det_app, ["train", str(labels), "--out", str(out), "--resume", "--quiet",

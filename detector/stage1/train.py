@@ -46,7 +46,7 @@ from detector.training.devices import loader_generator, resolve_device, worker_i
 from detector.training.distributed import DistContext
 from detector.training.metrics_log import MetricsLog
 from detector.training.optim import optimiser_step
-from detector.training.resume import restore_state, rng_state, run_checkpoint
+from detector.training.resume import restore_state, rng_state, run_checkpoint, with_added_settings
 from detector.training.schedule import lr_factor
 
 
@@ -61,7 +61,7 @@ RESUME_FREE_KEYS = frozenset({"steps", "epochs", "checkpoint_every", "val_every"
 
 #: Settings added to TrainConfig after runs were first saved, with the value that reproduces a run saved without
 #: them (:func:`saved_run_settings`): such a run resumes as it was trained.
-ADDED_SETTINGS = {"plane_keep": 1.0}
+ADDED_SETTINGS = {"plane_keep": 1.0, "loss.fg_weight": 1.0}
 
 METRIC_FIELDS = ["step", "epoch", "phase", "loss", "cls", "offset", "conf", "lr", "acc", "steps_per_s",
                  "val_loss", "val_acc"]
@@ -393,4 +393,5 @@ def _train(cfg: TrainConfig, train_path: str | Path, out_dir: str | Path, val_pa
 def saved_run_settings(saved: dict) -> dict:
     """A run's saved settings (a config dict) as this code writes them: a setting added since the run was saved
     (:data:`ADDED_SETTINGS`) takes the value the run was trained with."""
-    return {**ADDED_SETTINGS, **saved}
+    return with_added_settings(saved, ADDED_SETTINGS)
+

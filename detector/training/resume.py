@@ -58,3 +58,20 @@ def restore_state(net: torch.nn.Module, opt, sched, model_state: dict, state: di
     set_rng_state(state["rng"], device)
     for group, base_lr in zip(opt.param_groups, sched.base_lrs):
         group["lr"] = base_lr * lr_factor(start, total, cfg)
+
+
+def with_added_settings(saved: dict, added: dict) -> dict:
+    """``saved`` (a config dict) with each dotted key of ``added`` ("loss.fg_weight": 1.0) that it lacks set to
+    its value; the saved dict and its sections are not changed (copies where a key is added)."""
+    out = dict(saved)
+    for key, value in added.items():
+        *path, last = key.split(".")
+        node = out
+        for part in path:
+            if not isinstance(node.get(part), dict):
+                break
+            node[part] = dict(node[part])
+            node = node[part]
+        else:
+            node.setdefault(last, value)
+    return out
