@@ -19,6 +19,8 @@ from detector.stage2.crops import (
     crop_region,
     jittered_centre,
     model_coordinates,
+    negative_crop,
+    negative_reach,
     roll_about_ray,
     symmetry_targets,
     training_crop,
@@ -465,6 +467,66 @@ def test_crop_region_cache_gives_the_same_crops_and_respects_its_size(labels):
         load_stage2_config(None, {"cache_mb": -1})
 
 
+def test_negative_crops_hold_no_point_of_the_object_they_ask_about(labels):
+    """Every negative crop is a ball of the asked object's crop radius whose points are all frame points of other
+    instances or the background, asked about one of the network's objects; both kinds occur (the wrong object at an
+    instance's jittered centre, and a point beside it pushed away from the camera), and all lie within the reach
+    the crop region keeps."""
+    from scipy.spatial import cKDTree
+
+    cfg = CropConfig(roll_deg=0.0)
+    kinds = {"wrong object": 0, "beside": 0}
+    with LabelFile(labels) as lf:
+        tab = lf.objects
+        dias = {int(i): float(d) for i, d in zip(tab.ids, tab.diameters)}
+        for i in range(lf.num_frames):
+            f = lf.frame(i)
+            tree = cKDTree(f.features[:, :3])
+            for g in range(len(f.instances)):
+                own, true_centre = int(f.instances.obj_id[g]), f.instances.control_points[g][8]
+                for seed in range(6):
+                    c = negative_crop(f, g, dias[own], dias, cfg, np.random.default_rng(seed), NORMALISATION)
+                    if c is None:
+                        continue
+                    oid, centre = c["obj_id"], c["centre"]
+                    radius = cfg.radius * dias[oid]
+                    assert oid in dias and not c["fg"].any() and len(c["fg"]) == cfg.num_points
+                    p = c["features"][:, :3].astype(np.float64) * radius + centre
+                    d, j = tree.query(p)
+                    assert d.max() < 1e-5  # frame points
+                    asked = np.flatnonzero(f.instances.obj_id == oid)
+                    assert not np.isin(f.instance[j], asked).any()  # none of the asked object's
+                    assert np.linalg.norm(p - true_centre, axis=1).max() <= negative_reach(dias[own], max(dias.values()), cfg) + 1e-6
+                    jitter = np.abs(centre - true_centre).max() / dias[own]
+                    if jitter <= cfg.centre_jitter_clip + 1e-9 and oid != own:
+                        kinds["wrong object"] += 1
+                    else:
+                        kinds["beside"] += 1
+    assert min(kinds.values()) >= 5, kinds
+
+
+def test_crop_dataset_with_negatives_adds_background_crops_and_caches_them_alike(labels):
+    """crop.negatives adds crops without foreground about as often as it says; the region cache still gives
+    exactly the uncached items; out-of-range values are a config error."""
+    cfg = CropConfig(num_points=128, negatives=1.0)
+    plain = CropDataset(labels, cfg, augment=True, seed=2)
+    cached = CropDataset(labels, cfg, augment=True, seed=2, cache_mb=64)
+    base = CropDataset(labels, CropConfig(num_points=128), augment=True, seed=2)
+    neg = pos = 0
+    for epoch in range(2):
+        for i in range(len(plain)):
+            a, b = plain[(epoch, i)], cached[(epoch, i)]
+            assert all(torch.equal(a[k], b[k]) for k in a), (epoch, i)
+            empty = (a["fg"].sum(1) == 0)
+            neg, pos = neg + int(empty.sum()), pos + int((~empty).sum())
+            assert len(a["cls"]) >= len(base[(epoch, i)]["cls"])
+            assert a["sym_mask"][:, 0].all() and not a["sym_mask"][empty, 1:].any()
+    assert neg >= 0.5 * pos, (neg, pos)
+    for bad in (-0.1, 1.5):
+        with pytest.raises(DetectorError, match="negatives"):
+            load_stage2_config(None, {"crop.negatives": bad})
+
+
 def test_crop_dataset_items_and_a_few_steps_lower_the_loss(labels):
     cfg = CropConfig(num_points=128)
     ds = CropDataset(labels, cfg, augment=True, seed=0)
@@ -716,11 +778,14 @@ def test_a_run_started_under_older_defaults_resumes_with_its_own_settings(labels
     del cfg["stage1"]["colour"], cfg["stage2"]["crop.neighbour"]  # as a run's file reads when these were defaults
     (out / "two_stage.yaml").write_text(yaml.safe_dump(cfg))
     (out / "model.pt").unlink()
-    # settings added since the run was saved (stage 1's plane_keep and loss.fg_weight) read as the values the run
-    # was trained with
+    # settings added since the run was saved (stage 1's plane_keep and loss.fg_weight, stage 2's crop.negatives)
+    # read as the values the run was trained with
     payload = torch.load(out / "stage1" / "last.pt", map_location="cpu", weights_only=False)
     del payload["train_state"]["config"]["plane_keep"], payload["train_state"]["config"]["loss"]["fg_weight"]
     torch.save(payload, out / "stage1" / "last.pt")
+    payload = torch.load(out / "stage2" / "last.pt", map_location="cpu", weights_only=False)
+    del payload["stage2"]["train_state"]["config"]["crop"]["negatives"]
+    torch.save(payload, out / "stage2" / "last.pt")
     today = DEFAULTS["stage1"].get("colour", "light")
     r = run.invoke(det_app, ["train", str(labels), "--out", str(out), "--resume", "--quiet",
                              "--set", f"stage1.colour={today}"])

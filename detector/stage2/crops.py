@@ -44,7 +44,11 @@ class CropConfig:
     the centres: scenes such as LC-HF hold several instances of one object side by side, and a crop around one of
     them must not take its neighbour for it; shape_turns: with colour "none", an object's coordinates are also
     taught under the turns that map its shape onto itself and that only its print breaks
-    (:func:`shape_only_symmetries`; the colour check then chooses among them), false: under its own symmetries only.
+    (:func:`shape_only_symmetries`; the colour check then chooses among them), false: under its own symmetries only;
+    negatives: with this chance each training crop comes with a negative crop (:func:`negative_crop`): a crop
+    that holds no point of the object it is asked about, all of whose points are background, so that the network
+    learns to answer "not here" to a stage-1 detection on clutter or of the wrong object (0 = none, the first
+    design).
     """
 
     radius: float = 0.7
@@ -59,6 +63,7 @@ class CropConfig:
     neighbour: float = 0.0
     neighbour_offset: tuple[float, float] = (0.5, 1.0)
     shape_turns: bool = True
+    negatives: float = 0.0
 
     def to_dict(self) -> dict:
         return dict(self.__dict__)
@@ -156,7 +161,8 @@ def crop_region(frame, diameters: dict[int, float], cfg: CropConfig) -> CropFram
 
     A crop around instance g is a ball of ``cfg.radius`` diameters around its centre jittered by at most
     ``cfg.centre_jitter_clip`` diameters per axis, so it lies within ``radius + clip * sqrt(3)`` diameters of the
-    true centre; the instance's own points (the neighbour augmentation copies them) are kept too. Instances of
+    true centre (with ``cfg.negatives``, as far as :func:`negative_reach` says a negative crop beside it reaches);
+    the instance's own points (the neighbour augmentation copies them) are kept too. Instances of
     objects not in ``diameters`` (obj_id -> metres) hold no crop. Because the kept points keep their order,
     :func:`training_crop` cuts the same crops from the region as from the whole frame (a third of a 30000-point
     frame of the linemod template), which is what makes it worth keeping in memory between epochs.
@@ -165,11 +171,13 @@ def crop_region(frame, diameters: dict[int, float], cfg: CropConfig) -> CropFram
     inst = frame.instances
     keep = np.zeros(len(xyz), bool)
     reach = cfg.radius + cfg.centre_jitter_clip * np.sqrt(3.0)
+    largest = max(diameters.values(), default=0.0)
     for g in range(len(inst)):
         dia = diameters.get(int(inst.obj_id[g]))
         if dia is None:
             continue
-        keep[ball_rows(xyz, inst.control_points[g][8], reach * dia + 0.001)] = True  # 1 mm against rounding
+        far = reach * dia if cfg.negatives <= 0 else max(reach * dia, negative_reach(dia, largest, cfg))
+        keep[ball_rows(xyz, inst.control_points[g][8], far + 0.001)] = True  # 1 mm against rounding
         keep |= np.asarray(frame.instance) == g
     return CropFrame(np.ascontiguousarray(frame.features[keep]), np.ascontiguousarray(frame.instance[keep]), inst)
 
@@ -247,14 +255,74 @@ def training_crop(frame, g: int, diameter: float, sym_transforms: np.ndarray, cf
     coords = model_coordinates(xyz[rows], inst.R[g], inst.t[g], diameter)
     feats = crop_input(features, rows, centre, radius, normalisation)
     if augment:
-        p, Q = roll_about_ray(xyz[rows], centre, np.deg2rad(rng.uniform(-cfg.roll_deg, cfg.roll_deg)))
-        p = p + rng.normal(0.0, 0.001, p.shape)
-        feats[:, :3] = ((p - centre) / radius).astype(np.float32)
-        feats[:, 6:9] = (feats[:, 6:9] @ Q.T.astype(np.float32))
-        if cfg.colour in CAMERA_MODES:
-            rgb = camera_colour(np.asarray(features)[rows, 3:6], rng, **CAMERA_MODES[cfg.colour])
-            feats[:, 3:6] = normalised_colour(rgb, normalisation)
-        elif cfg.colour == "light":
-            feats[:, 3:6] = feats[:, 3:6] * np.float32(rng.uniform(0.8, 1.2)) + rng.normal(0, 0.1, 3).astype(np.float32)
+        augment_crop(feats, xyz[rows], np.asarray(features)[rows, 3:6], centre, radius, cfg, rng, normalisation)
     return {"features": feats, "fg": fg.astype(np.float32),
             "coords": symmetry_targets(coords, sym_transforms, diameter), "centre": centre}
+
+
+def augment_crop(feats: np.ndarray, xyz: np.ndarray, rgb: np.ndarray, centre: np.ndarray, radius: float,
+                 cfg: CropConfig, rng: np.random.Generator, normalisation: dict) -> None:
+    """Training augmentation of a crop's network input ``feats`` (n,9), in place: a roll about the camera ray
+    through ``centre`` (3,) metres by up to ``cfg.roll_deg`` and 1 mm noise on the points ``xyz`` (n,3) metres, and
+    ``cfg.colour``'s colour change of their colours ``rgb`` (n,3) in [0, 1]; radius: the crop's, metres."""
+    p, Q = roll_about_ray(xyz, centre, np.deg2rad(rng.uniform(-cfg.roll_deg, cfg.roll_deg)))
+    p = p + rng.normal(0.0, 0.001, p.shape)
+    feats[:, :3] = ((p - centre) / radius).astype(np.float32)
+    feats[:, 6:9] = (feats[:, 6:9] @ Q.T.astype(np.float32))
+    if cfg.colour in CAMERA_MODES:
+        feats[:, 3:6] = normalised_colour(camera_colour(rgb, rng, **CAMERA_MODES[cfg.colour]), normalisation)
+    elif cfg.colour == "light":
+        feats[:, 3:6] = feats[:, 3:6] * np.float32(rng.uniform(0.8, 1.2)) + rng.normal(0, 0.1, 3).astype(np.float32)
+
+
+def negative_reach(diameter: float, largest: float, cfg: CropConfig) -> float:
+    """How far from an instance's true centre a negative crop beside it (:func:`negative_crop`) can reach, metres:
+    its centre lies within ``diameter`` (the instance's, metres) of it plus a push of ``0.3 * largest`` (the largest
+    crop object's diameter) along the ray, its ball's radius is at most ``cfg.radius * largest``; and the wrong-class
+    crop at the jittered centre stays within the same bound."""
+    return max(diameter, cfg.centre_jitter_clip * np.sqrt(3.0) * diameter) + (0.3 + cfg.radius) * largest
+
+
+def negative_crop(frame, g: int, diameter: float, others: dict[int, float], cfg: CropConfig,
+                  rng: np.random.Generator, normalisation: dict, augment: bool = False) -> dict | None:
+    """A negative training crop beside instance ``g`` of ``frame`` (as :func:`training_crop`'s): a crop asked about
+    an object that has no point in it, so all of its points are background.
+
+    others: {object id: diameter metres} of the objects a crop may be asked about (the network's classes);
+    diameter: instance g's, metres. Half the time the crop is cut around g's jittered centre and asked about
+    another object (a stage-1 detection of the wrong object); otherwise it is centred on a random point of the frame
+    within ``diameter`` of g's centre that is not g's, pushed 0.3 of the asked object's diameter away from the
+    camera (a detection's centre lies behind the surface it saw), and asked about any object (a detection on
+    clutter, or on the desk beside an object). Returns {"features": (n,9) float32, "fg": (n,) zeros, "obj_id":
+    the object asked about, "centre": (3,) metres}, or None when the asked object has points in the ball or the
+    ball holds too few points.
+    """
+    inst = frame.instances
+    xyz = np.asarray(frame.features[:, :3], np.float64)
+    instance = np.asarray(frame.instance)
+    ids = sorted(others)
+    own = int(inst.obj_id[g])
+    if rng.random() < 0.5:
+        choices = [o for o in ids if o != own]
+        if not choices:
+            return None
+        oid = choices[int(rng.integers(len(choices)))]
+        centre = jittered_centre(inst.control_points[g][8], diameter, cfg, rng)
+    else:
+        oid = ids[int(rng.integers(len(ids)))]
+        near = ball_rows(xyz, inst.control_points[g][8], diameter)
+        near = near[instance[near] != g]
+        if len(near) == 0:
+            return None
+        p = xyz[near[int(rng.integers(len(near)))]]
+        centre = p + 0.3 * others[oid] * p / np.linalg.norm(p)
+    radius = cfg.radius * others[oid]
+    rows = ball_rows(xyz, centre, radius)
+    asked = np.flatnonzero(np.asarray(inst.obj_id) == oid)
+    if len(rows) < cfg.min_points or np.isin(instance[rows], asked).any():
+        return None
+    rows = sample_crop(rows, cfg.num_points, rng)
+    feats = crop_input(frame.features, rows, centre, radius, normalisation)
+    if augment:
+        augment_crop(feats, xyz[rows], np.asarray(frame.features)[rows, 3:6], centre, radius, cfg, rng, normalisation)
+    return {"features": feats, "fg": np.zeros(len(rows), np.float32), "obj_id": oid, "centre": centre}

@@ -11,7 +11,7 @@ import torch
 
 from detector.data.augment import input_normalisation
 from detector.data.frames import FrameSource
-from detector.stage2.crops import CropFrame, crop_region, shape_only_symmetries, training_crop
+from detector.stage2.crops import CropFrame, crop_region, negative_crop, shape_only_symmetries, training_crop
 
 
 class CropDataset(FrameSource):
@@ -21,7 +21,9 @@ class CropDataset(FrameSource):
     (``class_ids[cls]`` is the object id), ``fg`` (c, n) float32, ``coords`` (c, S, n, 3) float32 model coordinates
     in diameters under each of the S symmetries of :func:`crop_symmetries` (padded to the most any object has),
     ``sym_mask`` (c, S) bool and ``frame`` (c,) int64. An instance is used when its object is in ``class_ids``, its
-    visible fraction and point count reach the crop config's minimums and its crop holds enough points; c may be 0.
+    visible fraction and point count reach the crop config's minimums and its crop holds enough points; with
+    ``crop.negatives`` some instances also give a negative crop (:func:`detector.stage2.crops.negative_crop`: no
+    foreground, its coordinates zero and only its first symmetry marked); c may be 0.
     Items are pure functions of (seed, epoch, frame). Batches join items with :func:`collate_crops`.
 
     cache_mb: each process keeps the :func:`detector.stage2.crops.crop_region` of the frames it reads, up to this many MB
@@ -75,6 +77,11 @@ class CropDataset(FrameSource):
                                   self.augment)
             if c is not None:
                 crops.append((self.class_ids.index(oid), c))
+            if cfg.negatives > 0 and rng.random() < cfg.negatives:
+                c = negative_crop(frame, g, self.diameters[oid], self._crop_diameters, cfg, rng, self.normalisation,
+                                  self.augment)
+                if c is not None:
+                    crops.append((self.class_ids.index(c["obj_id"]), {**c, "coords": np.zeros((1, n, 3), np.float32)}))
         feats = np.zeros((len(crops), n, 9), np.float32)
         fg = np.zeros((len(crops), n), np.float32)
         coords = np.zeros((len(crops), S, n, 3), np.float32)

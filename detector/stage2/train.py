@@ -28,7 +28,7 @@ from detector.training.checkpoint_file import FORMAT, TWO_STAGE_VERSION, atomic_
 from detector.training.devices import loader_generator, resolve_device, worker_init
 from detector.training.metrics_log import MetricsLog
 from detector.training.optim import optimiser_step
-from detector.training.resume import restore_state, rng_state, run_checkpoint
+from detector.training.resume import restore_state, rng_state, run_checkpoint, with_added_settings
 from detector.training.schedule import lr_factor
 
 
@@ -38,6 +38,10 @@ STAGE2_METRICS = ["step", "epoch", "loss", "fg", "coord", "fg_acc", "crops", "lr
 
 #: Stage2TrainConfig keys that may differ when resuming: they do not change the steps' numbers (``steps`` stretches
 #: or shortens the schedule from the step reached; the crop cache holds the same crops whatever its size).
+#: Settings added to Stage2TrainConfig after runs were first saved, with the value that reproduces a run saved
+#: without them (:func:`saved_settings`).
+STAGE2_ADDED_SETTINGS = {"crop.negatives": 0.0}
+
 STAGE2_RESUME_FREE_KEYS = frozenset({"steps", "checkpoint_every", "keep_every", "num_workers", "cache_mb", "device"})
 
 
@@ -184,7 +188,8 @@ def saved_settings(saved: dict) -> dict:
     """A stage-2 run's saved settings (a config dict) as this code writes them: runs started before
     ``net.norm_before_max`` was removed store it as false, which is the one network there is now; runs started
     before ``crop.shape_turns`` existed get the value that reproduces them (false for a colour-free stage 2, which
-    was taught its objects' own symmetries only; the default for any other, which the setting does not touch)."""
+    was taught its objects' own symmetries only; the default for any other, which the setting does not touch), and
+    runs started before ``crop.negatives`` existed none (0)."""
     out = dict(saved)
     net = dict(saved.get("net") or {})
     if net.get("norm_before_max") is False:
@@ -193,7 +198,7 @@ def saved_settings(saved: dict) -> dict:
     crop = saved.get("crop")
     if isinstance(crop, dict) and "shape_turns" not in crop:
         out["crop"] = {**crop, "shape_turns": crop.get("colour") != "none"}
-    return out
+    return with_added_settings(out, STAGE2_ADDED_SETTINGS)
 
 
 def load_stage2_config(data: dict | None, overrides: dict | None = None) -> Stage2TrainConfig:
@@ -212,6 +217,8 @@ def load_stage2_config(data: dict | None, overrides: dict | None = None) -> Stag
     if not (0.0 <= cfg.crop.neighbour <= 1.0 and 0.0 < lo <= hi):
         raise DetectorError("stage-2 config: crop.neighbour must lie in [0, 1] and crop.neighbour_offset be "
                             "[min, max] with 0 < min <= max")
+    if not 0.0 <= cfg.crop.negatives <= 1.0:
+        raise DetectorError(f"stage-2 config: crop.negatives must lie in [0, 1], got {cfg.crop.negatives}")
     if cfg.crop.colour not in COLOUR_MODES:
         raise DetectorError(f"stage-2 config: crop.colour must be {COLOUR_MODES_TEXT}, got '{cfg.crop.colour}'")
     return cfg

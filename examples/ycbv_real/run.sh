@@ -106,12 +106,14 @@ done
 # 6d. stage 2's colour input (RESULTS.md, "A stage 2 without colour"): stage 2 alone trained again beside the run's
 #     stage 1 (a run folder holding the run's finished stage 1, resumed) with camera-like colour changes
 #     (`camera`), without colour and taught the object's own symmetries only (`crop.shape_turns: false`), and as the
-#     run's with another seed; the run's own number of steps; seeds 0-7 on the real frames and the simulated test
-#     capture; about 7 minutes each
-for variant in camera:camera:true:0 none_own_symmetries:none:false:0 none_seed_1:none:true:1; do
-  IFS=: read -r name colour turns s2seed <<< "$variant"; r="$RUN-s2-$name"
-  train_beside stage1 "$r" "$(printf 'stage1:\n  colour: none\n  plane_keep: 0.1\nstage2:\n  crop.colour: %s\n  crop.shape_turns: %s\n  seed: %s\n  steps: %s\n  keep_every: 2000' \
-    "$colour" "$turns" "$s2seed" "$S2STEPS")"
+#     run's with another seed, and as the run's with negative crops (`crop.negatives`: half the instances also give
+#     a crop asked about an object it does not hold); the run's own number of steps; seeds 0-7 on the real frames and
+#     the simulated test capture; about 7 minutes each (10 with negative crops)
+for variant in camera:camera:true:0:0 none_own_symmetries:none:false:0:0 none_seed_1:none:true:1:0 \
+               negatives:none:true:0:0.5; do
+  IFS=: read -r name colour turns s2seed negatives <<< "$variant"; r="$RUN-s2-$name"
+  train_beside stage1 "$r" "$(printf 'stage1:\n  colour: none\n  plane_keep: 0.1\nstage2:\n  crop.colour: %s\n  crop.shape_turns: %s\n  crop.negatives: %s\n  seed: %s\n  steps: %s\n  keep_every: 2000' \
+    "$colour" "$turns" "$negatives" "$s2seed" "$S2STEPS")"
   for seed in 0 1 2 3 4 5 6 7; do
     [ -f "$REP/seeds_stage2/$name-$seed/report.json" ] || $D eval "$r/model.pt" "$OUT/ycbv_real.h5" \
       --out "$REP/seeds_stage2/$name-$seed" --icp --min-visib 0 --quiet --seed $seed
