@@ -394,4 +394,3 @@ def saved_run_settings(saved: dict) -> dict:
     """A run's saved settings (a config dict) as this code writes them: a setting added since the run was saved
     (:data:`ADDED_SETTINGS`) takes the value the run was trained with."""
     return with_added_settings(saved, ADDED_SETTINGS)
-

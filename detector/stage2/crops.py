@@ -45,10 +45,11 @@ class CropConfig:
     them must not take its neighbour for it; shape_turns: with colour "none", an object's coordinates are also
     taught under the turns that map its shape onto itself and that only its print breaks
     (:func:`shape_only_symmetries`; the colour check then chooses among them), false: under its own symmetries only;
-    negatives: with this chance each training crop comes with a negative crop (:func:`negative_crop`): a crop
-    that holds no point of the object it is asked about, all of whose points are background, so that the network
-    learns to answer "not here" to a stage-1 detection on clutter or of the wrong object (0 = none, the first
-    design).
+    negatives: with this chance each usable training instance is also tried for a negative crop
+    (:func:`negative_crop`): a crop that holds no point of the object it is asked about, all of whose points are
+    background, so that the network learns to answer "not here" to a stage-1 detection on clutter or of the wrong
+    object; about half the tries give none (the asked object is in the ball, or the ball holds too few points);
+    0 = none, the first design.
     """
 
     radius: float = 0.7
@@ -161,7 +162,8 @@ def crop_region(frame, diameters: dict[int, float], cfg: CropConfig) -> CropFram
 
     A crop around instance g is a ball of ``cfg.radius`` diameters around its centre jittered by at most
     ``cfg.centre_jitter_clip`` diameters per axis, so it lies within ``radius + clip * sqrt(3)`` diameters of the
-    true centre (with ``cfg.negatives``, as far as :func:`negative_reach` says a negative crop beside it reaches);
+    true centre (with ``cfg.negatives``, as far as :func:`negative_reach` says a negative crop beside it reaches,
+    which keeps most of a frame: 1.7 times the points on the ycbv template);
     the instance's own points (the neighbour augmentation copies them) are kept too. Instances of
     objects not in ``diameters`` (obj_id -> metres) hold no crop. Because the kept points keep their order,
     :func:`training_crop` cuts the same crops from the region as from the whole frame (a third of a 30000-point
@@ -283,12 +285,13 @@ def negative_reach(diameter: float, largest: float, cfg: CropConfig) -> float:
     return max(diameter, cfg.centre_jitter_clip * np.sqrt(3.0) * diameter) + (0.3 + cfg.radius) * largest
 
 
-def negative_crop(frame, g: int, diameter: float, others: dict[int, float], cfg: CropConfig,
+def negative_crop(frame, g: int, diameter: float, diameters: dict[int, float], cfg: CropConfig,
                   rng: np.random.Generator, normalisation: dict, augment: bool = False) -> dict | None:
     """A negative training crop beside instance ``g`` of ``frame`` (as :func:`training_crop`'s): a crop asked about
     an object that has no point in it, so all of its points are background.
 
-    others: {object id: diameter metres} of the objects a crop may be asked about (the network's classes);
+    diameters: {object id: diameter metres} of the objects a crop may be asked about (the network's classes, g's
+    own among them);
     diameter: instance g's, metres. Half the time the crop is cut around g's jittered centre and asked about
     another object (a stage-1 detection of the wrong object); otherwise it is centred on a random point of the frame
     within ``diameter`` of g's centre that is not g's, pushed 0.3 of the asked object's diameter away from the
@@ -300,7 +303,7 @@ def negative_crop(frame, g: int, diameter: float, others: dict[int, float], cfg:
     inst = frame.instances
     xyz = np.asarray(frame.features[:, :3], np.float64)
     instance = np.asarray(frame.instance)
-    ids = sorted(others)
+    ids = sorted(diameters)
     own = int(inst.obj_id[g])
     if rng.random() < 0.5:
         choices = [o for o in ids if o != own]
@@ -315,8 +318,8 @@ def negative_crop(frame, g: int, diameter: float, others: dict[int, float], cfg:
         if len(near) == 0:
             return None
         p = xyz[near[int(rng.integers(len(near)))]]
-        centre = p + 0.3 * others[oid] * p / np.linalg.norm(p)
-    radius = cfg.radius * others[oid]
+        centre = p + 0.3 * diameters[oid] * p / np.linalg.norm(p)
+    radius = cfg.radius * diameters[oid]
     rows = ball_rows(xyz, centre, radius)
     asked = np.flatnonzero(np.asarray(inst.obj_id) == oid)
     if len(rows) < cfg.min_points or np.isin(instance[rows], asked).any():

@@ -62,7 +62,8 @@ def restore_state(net: torch.nn.Module, opt, sched, model_state: dict, state: di
 
 def with_added_settings(saved: dict, added: dict) -> dict:
     """``saved`` (a config dict) with each dotted key of ``added`` ("loss.fg_weight": 1.0) that it lacks set to
-    its value; the saved dict and its sections are not changed (copies where a key is added)."""
+    its value, where the key's section is there (a section the saved run lacks is left out: the config check then
+    names it); the saved dict and its sections are not changed (copies where a key is added)."""
     out = dict(saved)
     for key, value in added.items():
         *path, last = key.split(".")

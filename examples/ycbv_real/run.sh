@@ -106,8 +106,8 @@ done
 # 6d. stage 2's colour input (RESULTS.md, "A stage 2 without colour"): stage 2 alone trained again beside the run's
 #     stage 1 (a run folder holding the run's finished stage 1, resumed) with camera-like colour changes
 #     (`camera`), without colour and taught the object's own symmetries only (`crop.shape_turns: false`), and as the
-#     run's with another seed, and as the run's with negative crops (`crop.negatives`: half the instances also give
-#     a crop asked about an object it does not hold); the run's own number of steps; seeds 0-7 on the real frames and
+#     run's with another seed, and as the run's with negative crops (`crop.negatives`: each instance is tried, with
+#     chance 0.5, for a crop asked about an object it does not hold); the run's own number of steps; seeds 0-7 on the real frames and
 #     the simulated test capture; about 7 minutes each (10 with negative crops)
 for variant in camera:camera:true:0:0 none_own_symmetries:none:false:0:0 none_seed_1:none:true:1:0 \
                negatives:none:true:0:0.5; do
