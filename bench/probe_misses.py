@@ -1,0 +1,145 @@
+"""Where a two-stage model loses the instances that `detector eval --icp` counted as missed (no pose within
+``--threshold`` of the diameter, ADD(-S) after ICP): for each, whether stage 1 voted a centre of its object near it,
+only a centre of another object, or one of its own whose stage-2 pose was then wrong, or right but scored under
+``min_score``. It reruns the model on the missed instances' frames with the report's settings (give eval's
+``--seed`` and ``--set``) and reads the poses before the score threshold. Usage:
+
+    python bench/probe_misses.py MODEL LABELS REPORT [--seed S] [--set KEY=V ...] [--min-visib V] [--json OUT]
+
+REPORT: the report.json that `detector eval MODEL LABELS --icp` wrote. Prints a table per object and the frames.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from collections import Counter, defaultdict
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from argen.errors import ArgenError
+from argen.h5 import LabelFile
+from detector.checkpoint import load_checkpoint
+from detector.errors import DetectorError
+from detector.evaluation.metrics import pose_error
+from detector.geometry.types import Detection
+from detector.geometry.voting import detect
+from detector.infer import checkpoint_geometry_config, checkpoint_objects, checkpoint_poser, estimate, split_sets
+from detector.stage1.predictor import network_predictor
+
+#: The causes, in the order a miss is tested for them.
+CAUSES = ("no stage-1 centre", "another object's centre only", "no stage-2 pose", "wrong pose",
+          "right pose, score under min_score", "right pose, not chosen")
+
+
+def miss_cause(obj_id: int, centre: np.ndarray, diameter: float, stage1: list[Detection], posed: list[Detection],
+               error, min_score: float, threshold: float = 0.1, near: float = 0.5) -> str:
+    """Why a missed instance of ``obj_id`` was missed, one of :data:`CAUSES`.
+
+    centre: (3,) metres, its true box centre; diameter: metres; stage1: the frame's stage-1 detections; posed: its
+    final detections (after stage 2 and ICP) before any score threshold; error: a function of a detection giving its
+    pose error in metres (ADD(-S) against this instance); a detection is near when its box centre lies within
+    ``near`` x the diameter of ``centre``; a pose is right under ``threshold`` x the diameter.
+    """
+    def close(dets: list[Detection]) -> list[Detection]:
+        return [d for d in dets if np.linalg.norm(d.control_points[8] - centre) < near * diameter]
+
+    mine = [d for d in close(stage1) if d.obj_id == obj_id]
+    if not mine:
+        return CAUSES[1] if close(stage1) else CAUSES[0]
+    poses = [d for d in close(posed) if d.obj_id == obj_id]
+    if not poses:
+        return CAUSES[2]
+    best = max(poses, key=lambda d: d.score)
+    if error(best) >= threshold * diameter:
+        return CAUSES[3]
+    return CAUSES[4] if best.score < min_score else CAUSES[5]
+
+
+def missed_instances(report: dict, threshold: float) -> dict[int, list[tuple[int, int]]]:
+    """{frame: [(obj_id, k), ...]}: the report's instances without a pose within ``threshold`` of the diameter after
+    ICP; k: which of the frame's evaluated instances of that object it is (the report lists them in the label
+    file's order)."""
+    out: dict[int, list[tuple[int, int]]] = defaultdict(list)
+    seen: Counter = Counter()
+    for row in report["instances"]:
+        key = (row["frame"], row["obj_id"])
+        if "icp" not in row:
+            raise DetectorError("the report holds no poses after ICP: run detector eval with --icp")
+        if row["icp"] is None or row["icp"] >= threshold:
+            out[row["frame"]].append((row["obj_id"], seen[key]))
+        seen[key] += 1
+    return out
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("model")
+    ap.add_argument("labels")
+    ap.add_argument("report")
+    ap.add_argument("--seed", type=int, default=0, help="the sampling seed detector eval used")
+    ap.add_argument("--set", dest="sets", action="append", default=[], help="as detector eval --set")
+    ap.add_argument("--min-visib", type=float, default=0.1, help="as detector eval --min-visib")
+    ap.add_argument("--threshold", type=float, default=0.1, help="ADD(-S) share of the diameter")
+    ap.add_argument("--json", type=Path, help="write the causes per instance here")
+    a = ap.parse_args()
+    try:
+        report = json.loads(Path(a.report).read_text())
+        missed = missed_instances(report, a.threshold)
+        geometry, sampling = split_sets(a.sets)
+        ck = load_checkpoint(a.model, "cpu", sampling=sampling or None)
+        if ck.stage2_net is None:
+            raise DetectorError(f"{a.model} is not a two-stage model")
+        cfg = checkpoint_geometry_config(ck, None, True, None, geometry)
+        loose = checkpoint_geometry_config(ck, None, True, None, geometry + ["geometry.min_score=0.0",
+                                                                          "geometry.min_score_unrefined=0.0"])
+        LabelFile(a.labels).close()
+    except (OSError, ValueError, KeyError, ArgenError, DetectorError) as exc:
+        sys.exit(f"probe_misses: {exc}")
+    torch.set_num_threads(2)
+    objects, _ = checkpoint_objects(ck)
+    poser = checkpoint_poser(ck, objects, "cpu", a.seed)
+    pred = network_predictor(ck, a.seed)
+    rows, per = [], defaultdict(Counter)
+    with LabelFile(a.labels) as lf:
+        table = lf.objects
+        for i in sorted(missed):
+            fr = lf.frame(i)
+            p = pred(fr)
+            stage1 = detect(p.xyz, p.obj_ids, p.confidence, p.control_points, objects, cfg, {})
+            _, posed = estimate(p, objects, loose, {}, fr.features[:, :3], poser, fr.features)
+            inst = fr.instances
+            for oid, k in missed[i]:
+                ours = np.flatnonzero((inst.obj_id == oid) & (np.asarray(inst.visib_fract) >= a.min_visib))
+                if k >= len(ours):
+                    sys.exit(f"probe_misses: frame {i} has fewer instances of object {oid} than the report "
+                             "(another label file, or another --min-visib?)")
+                g, m = int(ours[k]), table.index(oid)
+                dia = float(table.diameters[m])
+                err = lambda d, g=g, m=m: pose_error(table.model_points[m], bool(table.symmetric[m]),  # noqa: E731
+                                                     inst.R[g], inst.t[g], d.R, d.t)
+                cause = miss_cause(oid, inst.control_points[g][8], dia, stage1, posed, err, cfg.min_score,
+                                   a.threshold)
+                per[oid][cause] += 1
+                rows.append({"frame": i, "obj_id": oid, "visib_fract": round(float(inst.visib_fract[g]), 3),
+                             "cause": cause})
+    names = {int(o["obj_id"]): o["name"] for o in report.get("objects", [])}
+    print(f"{len(rows)} missed instances of {len(report['instances'])} ({a.report}), by where they were lost:")
+    print("| object | missed | " + " | ".join(CAUSES) + " |")
+    print("|---|---:|" + "---:|" * len(CAUSES))
+    for oid in sorted(per):
+        print(f"| {names.get(oid, oid)} | {sum(per[oid].values())} | " + " | ".join(str(per[oid][c]) for c in CAUSES)
+              + " |")
+    total = Counter()
+    for c in per.values():
+        total.update(c)
+    print(f"| all | {len(rows)} | " + " | ".join(str(total[c]) for c in CAUSES) + " |")
+    if a.json:
+        a.json.write_text(json.dumps(rows, indent=1))
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,95 @@
+"""bench/probe_misses.py: each missed instance gets the first cause that holds, from stage 1's centres to the
+score threshold, with the real ADD pose error; the report's misses are read per object in the label file's
+order; bad input is a one-line error."""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from detector.errors import DetectorError
+from detector.evaluation.metrics import add
+from detector.geometry.types import Detection
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def _probe():
+    spec = importlib.util.spec_from_file_location("probe_misses", REPO / "bench" / "probe_misses.py")
+    mod = importlib.util.module_from_spec(spec)
+    sys.modules["probe_misses"] = mod
+    spec.loader.exec_module(mod)
+    return mod
+
+
+def _det(obj_id: int, R: np.ndarray, t: np.ndarray, score: float, corners: np.ndarray) -> Detection:
+    """A detection whose control points are the model's box points (9,3) under (R, t)."""
+    return Detection(obj_id=obj_id, score=score, R=R, t=t, support=5, control_points=corners @ R.T + t,
+                     members=np.arange(5))
+
+
+def test_miss_cause_takes_the_first_cause_that_holds():
+    p = _probe()
+    rng = np.random.default_rng(0)
+    model = rng.uniform(-0.05, 0.05, (500, 3))  # a 0.1 m box of points; its centre is the origin
+    corners = np.concatenate([np.array([[x, y, z] for x in (-.05, .05) for y in (-.05, .05) for z in (-.05, .05)]),
+                              np.zeros((1, 3))])
+    dia = float(np.linalg.norm(model.max(0) - model.min(0)))
+    R, t = Rotation.from_euler("xyz", [20, -30, 50], degrees=True).as_matrix(), np.array([0.1, -0.05, 0.8])
+    centre = t.copy()
+    error = lambda d: add(model, R, t, d.R, d.t)  # noqa: E731
+    right = _det(3, R, t + 0.002, 0.9, corners)
+    turned = _det(3, Rotation.from_euler("z", 90, degrees=True).as_matrix() @ R, t, 0.9, corners)
+    far = _det(3, R, t + np.array([0.2, 0, 0]), 0.9, corners)
+    other = _det(7, R, t, 0.9, corners)
+
+    def cause(stage1, posed, min_score=0.65):
+        return p.miss_cause(3, centre, dia, stage1, posed, error, min_score)
+
+    assert cause([], [right]) == "no stage-1 centre"
+    assert cause([far], [right]) == "no stage-1 centre"  # its own centre, but not near
+    assert cause([other], [right]) == "another object's centre only"
+    assert cause([right, other], [other]) == "no stage-2 pose"
+    assert cause([right], [turned]) == "wrong pose"
+    weak = _det(3, R, t + 0.002, 0.5, corners)
+    assert cause([right], [weak]) == "right pose, score under min_score"
+    assert cause([right], [weak], min_score=0.4) == "right pose, not chosen"
+    # the best-scoring pose near the centre decides
+    assert cause([right], [_det(3, turned.R, t, 0.95, corners), weak]) == "wrong pose"
+    assert cause([right], [_det(3, turned.R, t, 0.3, corners), right]) == "right pose, not chosen"
+    assert set(p.CAUSES) >= {cause([], []), cause([right], [])}
+
+
+def test_missed_instances_follow_the_label_files_order_per_object():
+    p = _probe()
+    rows = [{"frame": 0, "obj_id": 5, "icp": 0.02}, {"frame": 0, "obj_id": 5, "icp": None},
+            {"frame": 0, "obj_id": 9, "icp": 0.3}, {"frame": 0, "obj_id": 5, "icp": 0.15},
+            {"frame": 2, "obj_id": 9, "icp": 0.0999}]
+    assert dict(p.missed_instances({"instances": rows}, 0.1)) == {0: [(5, 1), (9, 0), (5, 2)]}
+    assert dict(p.missed_instances({"instances": rows}, 0.05)) == {0: [(5, 1), (9, 0), (5, 2)], 2: [(9, 0)]}
+    with pytest.raises(DetectorError, match="--icp"):
+        p.missed_instances({"instances": [{"frame": 0, "obj_id": 5, "noicp": 0.2}]}, 0.1)
+
+
+@pytest.mark.parametrize("what", ["missing report", "report without ICP", "missing model", "missing labels"])
+def test_bad_input_is_a_one_line_error(tmp_path, what):
+    report, model = tmp_path / "report.json", tmp_path / "model.pt"
+    if what == "report without ICP":
+        report.write_text(json.dumps({"instances": [{"frame": 0, "obj_id": 1, "noicp": 0.5}]}))
+    elif what != "missing report":
+        report.write_text(json.dumps({"instances": [{"frame": 0, "obj_id": 1, "noicp": 0.5, "icp": 0.5}]}))
+    if what == "missing labels":
+        model = REPO / "checkpoints" / "lm8.pt"
+        if not model.is_file():
+            pytest.skip("no checkpoints/lm8.pt")
+    r = subprocess.run([sys.executable, str(REPO / "bench" / "probe_misses.py"), str(model),
+                        str(tmp_path / "labels.h5"), str(report)], capture_output=True, text=True, cwd=REPO)
+    assert r.returncode != 0 and "Traceback" not in r.stderr
+    assert len(r.stderr.strip().splitlines()) == 1 and r.stderr.startswith("probe_misses:"), r.stderr
