@@ -61,15 +61,16 @@ def miss_cause(obj_id: int, centre: np.ndarray, diameter: float, stage1: list[De
 
 def missed_instances(report: dict, threshold: float) -> dict[int, list[tuple[int, int]]]:
     """{frame: [(obj_id, k), ...]}: the report's instances without a pose within ``threshold`` of the diameter after
-    ICP; k: which of the frame's evaluated instances of that object it is (the report lists them in the label
-    file's order)."""
+    ICP (a row's "icp" is its matched pose's ADD(-S) error in metres, None when unmatched; "diameter" in metres);
+    k: which of the frame's evaluated instances of that object it is (the report lists them in the label file's
+    order)."""
     out: dict[int, list[tuple[int, int]]] = defaultdict(list)
     seen: Counter = Counter()
     for row in report["instances"]:
         key = (row["frame"], row["obj_id"])
         if "icp" not in row:
             raise DetectorError("the report holds no poses after ICP: run detector eval with --icp")
-        if row["icp"] is None or row["icp"] >= threshold:
+        if row["icp"] is None or row["icp"] >= threshold * row["diameter"]:
             out[row["frame"]].append((row["obj_id"], seen[key]))
         seen[key] += 1
     return out

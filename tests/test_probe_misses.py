@@ -69,13 +69,14 @@ def test_miss_cause_takes_the_first_cause_that_holds():
 
 def test_missed_instances_follow_the_label_files_order_per_object():
     p = _probe()
-    rows = [{"frame": 0, "obj_id": 5, "icp": 0.02}, {"frame": 0, "obj_id": 5, "icp": None},
-            {"frame": 0, "obj_id": 9, "icp": 0.3}, {"frame": 0, "obj_id": 5, "icp": 0.15},
-            {"frame": 2, "obj_id": 9, "icp": 0.0999}]
+    rows = [{"frame": f, "obj_id": o, "diameter": d, "icp": e} for f, o, d, e in
+            [(0, 5, 0.2, 0.002), (0, 5, 0.2, None), (0, 9, 0.1, 0.03), (0, 5, 0.2, 0.03), (2, 9, 0.1, 0.00999)]]
+    # errors are metres, compared with the threshold times each instance's diameter
     assert dict(p.missed_instances({"instances": rows}, 0.1)) == {0: [(5, 1), (9, 0), (5, 2)]}
     assert dict(p.missed_instances({"instances": rows}, 0.05)) == {0: [(5, 1), (9, 0), (5, 2)], 2: [(9, 0)]}
+    assert dict(p.missed_instances({"instances": rows}, 0.2)) == {0: [(5, 1), (9, 0)]}
     with pytest.raises(DetectorError, match="--icp"):
-        p.missed_instances({"instances": [{"frame": 0, "obj_id": 5, "noicp": 0.2}]}, 0.1)
+        p.missed_instances({"instances": [{"frame": 0, "obj_id": 5, "diameter": 0.1, "noicp": 0.2}]}, 0.1)
 
 
 @pytest.mark.parametrize("what", ["missing report", "report without ICP", "missing model", "missing labels"])

@@ -60,8 +60,9 @@ if [ -f "$RUN/two_stage.yaml" ] && [ ! -f "$RUN/model.pt" ]; then
 elif [ ! -f "$RUN/model.pt" ]; then
   step train $D train "$OUT/ycbv_train.h5" --stage1-data "$OUT/ycbv_stage1.h5" --out "$RUN" "${SETS[@]}" --quiet
 fi
-# 4. the real frames, without and with ICP (checkpoints/ycbv3.pt is $RUN/model.pt)
+# 4. the real frames, without and with ICP (checkpoints/ycbv3.pt is $RUN/model.pt), and where the misses were lost
 $D eval "$RUN/model.pt" "$OUT/ycbv_real.h5" --out "$REP" --icp --min-visib 0 --quiet
+.venv/bin/python bench/probe_misses.py "$RUN/model.pt" "$OUT/ycbv_real.h5" "$REP/report.json" --min-visib 0
 # 5. training length: each kept stage-2 snapshot with the run's stage 1, on the real frames
 [ -f "$REP/curve.json" ] || .venv/bin/python examples/linemod/curve.py "$RUN" "$OUT/ycbv_real.h5" --out "$REP/curve.png" --min-visib 0
 # 6. what inference bought (RESULTS.md): the same model without the colour check, the depth check and the other
