@@ -88,27 +88,28 @@ $D eval runs/lm8/model.pt "$OUT/lchf_test.h5" --out reports/lm8_lchf_nochecks --
 G=geometry
 VARIANTS=("minvotes2:$G.min_votes=2" "density1.25:sampling.density=1.25" "density1.5:sampling.density=1.5"
           "density2:sampling.density=2" "density1.25_minvotes4:sampling.density=1.25 $G.min_votes=4")
+# eval_variant LABELS REPORT "KEY=VALUE ..." [EVAL OPTIONS]: runs/lm8's detector eval --icp with those --set values
+# into the folder REPORT, unless it holds a report
+eval_variant() {
+  local data=$1 rep=$2 kv sets=()
+  for kv in $3; do sets+=(--set "$kv"); done
+  shift 3
+  [ -f "$rep/report.json" ] || $D eval runs/lm8/model.pt "$data" --out "$rep" --icp --quiet "${sets[@]}" "$@"
+}
 for a in "noturns:$G.icp_half_turns=false $G.icp_iterations=30" "it30:$G.icp_iterations=30" "${VARIANTS[@]}"; do
-  name=${a%%:*}; sets=()
-  for kv in ${a#*:}; do sets+=(--set "$kv"); done
   for d in lm_test:test lchf_test:lchf; do
-    [ -f "reports/lm8_${d#*:}_$name/report.json" ] || \
-      $D eval runs/lm8/model.pt "$OUT/${d%%:*}.h5" --out "reports/lm8_${d#*:}_$name" --icp --quiet "${sets[@]}"
+    eval_variant "$OUT/${d%%:*}.h5" "reports/lm8_${d#*:}_${a%%:*}" "${a#*:}"
   done
 done
 for d in lm_val lchf_val; do
-  [ -f "reports/lm8_${d}/report.json" ] || $D eval runs/lm8/model.pt "$OUT/$d.h5" --out "reports/lm8_$d" --icp --quiet
+  eval_variant "$OUT/$d.h5" "reports/lm8_$d" ""
   for a in "${VARIANTS[@]}"; do
-    sets=(); for kv in ${a#*:}; do sets+=(--set "$kv"); done
-    [ -f "reports/lm8_${d}_${a%%:*}/report.json" ] || $D eval runs/lm8/model.pt "$OUT/$d.h5" \
-      --out "reports/lm8_${d}_${a%%:*}" --icp --quiet "${sets[@]}"
+    eval_variant "$OUT/$d.h5" "reports/lm8_${d}_${a%%:*}" "${a#*:}"
   done
 done
 for d in lm_test:test lchf_test:lchf; do
-  [ -f "reports/lm8_${d#*:}_seed1/report.json" ] || \
-    $D eval runs/lm8/model.pt "$OUT/${d%%:*}.h5" --out "reports/lm8_${d#*:}_seed1" --icp --quiet --seed 1
-  [ -f "reports/lm8_${d#*:}_density1.25_seed1/report.json" ] || $D eval runs/lm8/model.pt "$OUT/${d%%:*}.h5" \
-    --out "reports/lm8_${d#*:}_density1.25_seed1" --icp --quiet --seed 1 --set sampling.density=1.25
+  eval_variant "$OUT/${d%%:*}.h5" "reports/lm8_${d#*:}_seed1" "" --seed 1
+  eval_variant "$OUT/${d%%:*}.h5" "reports/lm8_${d#*:}_density1.25_seed1" "sampling.density=1.25" --seed 1
 done
 # the time-to-accuracy curve: each kept stage-2 snapshot with stage 1, on the test set (docs/img)
 .venv/bin/python examples/linemod/curve.py runs/lm8 "$OUT/lm_test.h5" --out docs/img/time_to_accuracy.png

@@ -22,13 +22,13 @@ T="$RUN.times.txt"
 step() { local name=$1; shift; local t0; t0=$(date +%s); "$@"; echo "$name $(( $(date +%s) - t0 )) s" >> "$T"; }
 # train_beside KEEP R YAML [TRAIN OPTIONS]: the run folder R holds a copy of the run's finished stage KEEP (stage1 or
 # stage2) and YAML as its two_stage.yaml, and is trained on the capture with distractors (resumed: the finished stage
-# is not trained again), unless its model.pt exists (steps 6d, 6e and 7)
+# is not trained again), or on the label file TRAIN_FILE names, unless its model.pt exists (steps 6d, 6e, 7 and 8)
 train_beside() {
   local keep=$1 r=$2 yaml=$3; shift 3
   if [ ! -f "$r/model.pt" ]; then
     [ -d "$r/$keep" ] || { mkdir -p "$r" && cp -r "$RUN/$keep" "$r/"; }
     printf '%s\n' "$yaml" > "$r/two_stage.yaml"
-    $D train "$OUT/ycbv_train.h5" "$@" --out "$r" --resume --quiet
+    $D train "${TRAIN_FILE:-$OUT/ycbv_train.h5}" "$@" --out "$r" --resume --quiet
   fi
 }
 
@@ -192,12 +192,8 @@ PY
     $A label "$P" --out "$OUT/ycbv_train_mugsym.h5" --max-depth 1.5 --quiet
   fi
   r="$RUN-s2-mugsym"
-  if [ ! -f "$r/model.pt" ]; then
-    [ -d "$r/stage1" ] || { mkdir -p "$r" && cp -r "$RUN/stage1" "$r/"; }
-    printf 'stage1:\n  colour: none\n  plane_keep: 0.1\nstage2:\n  crop.colour: none\n  steps: %s\n  keep_every: 2000\n' \
-      "$S2STEPS" > "$r/two_stage.yaml"
-    $D train "$OUT/ycbv_train_mugsym.h5" --out "$r" --resume --quiet
-  fi
+  TRAIN_FILE="$OUT/ycbv_train_mugsym.h5" train_beside stage1 "$r" \
+    "$(printf 'stage1:\n  colour: none\n  plane_keep: 0.1\nstage2:\n  crop.colour: none\n  steps: %s\n  keep_every: 2000' "$S2STEPS")"
   for seed in 0 1 2 3 4 5 6 7; do
     [ -f "$REP/seeds_mug/mugsym-$seed/report.json" ] || $D eval "$r/model.pt" "$OUT/ycbv_real.h5" \
       --out "$REP/seeds_mug/mugsym-$seed" --icp --min-visib 0 --quiet --seed $seed
