@@ -69,7 +69,9 @@ class ObjectTable:
     object (T_m,4,4) float32, the turns that map its shape onto itself but that its texture breaks
     (:func:`argen.models.texture.shape_symmetries`); texture_points: per object (N_m,3) float32 surface sample and
     texture_colours: per object (N_m,3) uint8 RGB its colours there (N_m = 0: the object has no such turns, or no
-    print to tell them apart).
+    print to tell them apart); part_symmetries: per object (P_m,4,4) float32, the turns about an axis that map all
+    of its surface but an odd part (a mug's handle) onto itself, and odd_points: per object (K_m,3) float32 surface
+    samples of that part (:func:`argen.models.symmetry.find_part_symmetry`; P_m = K_m = 0: it has none).
     """
 
     ids: np.ndarray
@@ -83,6 +85,8 @@ class ObjectTable:
     shape_symmetries: list[np.ndarray] = field(default_factory=list)
     texture_points: list[np.ndarray] = field(default_factory=list)
     texture_colours: list[np.ndarray] = field(default_factory=list)
+    part_symmetries: list[np.ndarray] = field(default_factory=list)
+    odd_points: list[np.ndarray] = field(default_factory=list)
 
     def index(self, obj_id: int) -> int:
         """Row of ``obj_id`` in the table; ArgenError when the file has no such object."""
@@ -157,16 +161,18 @@ def point_control_points(instance_cps: np.ndarray, instance: np.ndarray) -> np.n
 # ---------------------------------------------------------------------------------------- reader
 
 
-def _texture_tables(o, n: int, path) -> dict:
-    """The object group's optional shape symmetries and texture samples (see :class:`ObjectTable`) as its keyword
-    arguments; {} when the file has none."""
-    if "shape_sym" not in o:
-        return {}
+def _optional_tables(o, n: int, path) -> dict:
+    """The object group's optional tables (see :class:`ObjectTable`: shape symmetries and texture samples, part
+    symmetries and odd points) as its keyword arguments; none of a group the file was written without."""
     out = {}
     for key, name, offsets, dtype, shape in (
             ("shape_symmetries", "shape_sym", "shape_sym_offsets", np.float32, (4, 4)),
             ("texture_points", "texture_points", "texture_offsets", np.float32, (3,)),
-            ("texture_colours", "texture_colours", "texture_offsets", np.uint8, (3,))):
+            ("texture_colours", "texture_colours", "texture_offsets", np.uint8, (3,)),
+            ("part_symmetries", "part_sym", "part_sym_offsets", np.float32, (4, 4)),
+            ("odd_points", "odd_points", "odd_offsets", np.float32, (3,))):
+        if name not in o:
+            continue
         off = o[offsets][()].astype(np.int64)
         data = o[name][()].astype(dtype).reshape(-1, *shape)
         if len(off) != n + 1 or off[-1] != len(data) or np.any(np.diff(off) < 0):
@@ -247,7 +253,7 @@ class LabelFile:
             control_points=o["control_points"][()].astype(np.float32),
             model_points=o["model_points"][()].astype(np.float32),
             sym_transforms=[sym[sym_off[m]:sym_off[m + 1]] for m in range(len(ids))],
-            **_texture_tables(o, len(ids), self.path),
+            **_optional_tables(o, len(ids), self.path),
         )
 
     def __len__(self) -> int:
@@ -361,6 +367,9 @@ class LabelWriter:
                          "points")
             self._ragged("objects/texture", [np.asarray(c, np.uint8).reshape(-1, 3) for c in o.texture_colours],
                          "colours", offsets=False)
+        if o.part_symmetries:
+            self._ragged("objects/part_sym", [np.asarray(s, np.float32).reshape(-1, 4, 4) for s in o.part_symmetries])
+            self._ragged("objects/odd", [np.asarray(p, np.float32).reshape(-1, 3) for p in o.odd_points], "points")
 
     def _ragged(self, name: str, rows: list[np.ndarray], part: str = "", offsets: bool = True,
                 empty: np.ndarray | None = None) -> None:

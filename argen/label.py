@@ -122,12 +122,17 @@ def sample_surface(vertices: np.ndarray, faces: np.ndarray, n: int, rng: np.rand
 def object_table(objects: list[ObjectModel], n_points: int = 1000, seed: int = 0) -> ObjectTable:
     """The label file's objects table (sorted by id); model points sampled with a Generator seeded (seed, obj_id).
     An object with shape symmetries its texture breaks (:func:`argen.models.texture.shape_symmetries`) also gets
-    ``TEXTURE_POINTS`` surface points with their colours (seeded (seed, obj_id, 1)), when its colours vary."""
+    ``TEXTURE_POINTS`` surface points with their colours (seeded (seed, obj_id, 1)), when its colours vary. An
+    object without a continuous symmetry of its own gets its part symmetry, if it has one
+    (:func:`argen.models.symmetry.find_part_symmetry`, searched once a process: turns about an axis, every
+    ``360 / PART_STEPS`` degrees, and samples of the odd part that breaks them)."""
     objects = sorted(objects, key=lambda o: o.obj_id)
     pts = [sample_surface(o.mesh.vertices, o.mesh.faces, n_points, np.random.default_rng([seed, o.obj_id]))
            for o in objects]
     cps = np.stack([o.control_points for o in objects])
-    shape_sym, tex_pts, tex_cols = [], [], []
+    from argen.models.symmetry import PART_STEPS, part_symmetry_of  # lazy: it loads open3d (about a second)
+
+    shape_sym, tex_pts, tex_cols, part_sym, odd_pts = [], [], [], [], []
     for o in objects:  # the turns only a print tells apart, and the print (argen.models.texture)
         turns = shape_symmetries(o)
         tp = sample_surface(o.mesh.vertices, o.mesh.faces, TEXTURE_POINTS, np.random.default_rng([seed, o.obj_id, 1])) \
@@ -138,6 +143,9 @@ def object_table(objects: list[ObjectModel], n_points: int = 1000, seed: int = 0
         shape_sym.append(turns.astype(np.float32))
         tex_pts.append(tp.astype(np.float32))
         tex_cols.append(tc)
+        part = None if o.info.symmetries_continuous else part_symmetry_of(o.mesh, o.diameter)
+        part_sym.append(np.zeros((0, 4, 4), np.float32) if part is None else part.turns(PART_STEPS).astype(np.float32))
+        odd_pts.append(np.zeros((0, 3), np.float32) if part is None else part.odd_points.astype(np.float32))
     return ObjectTable(
         ids=np.array([o.obj_id for o in objects], np.int32),
         names=[o.name for o in objects],
@@ -148,6 +156,7 @@ def object_table(objects: list[ObjectModel], n_points: int = 1000, seed: int = 0
         model_points=np.stack(pts).astype(np.float32),
         sym_transforms=[bop.symmetry_transforms(o.info, CONTINUOUS_STEPS).astype(np.float32) for o in objects],
         shape_symmetries=shape_sym, texture_points=tex_pts, texture_colours=tex_cols,
+        part_symmetries=part_sym, odd_points=odd_pts,
     )
 
 

@@ -25,7 +25,8 @@ class Checkpoint:
     model: PointNet2 in eval mode on the requested device; class_ids: object id of class index c + 1;
     objects: the label file's object table as plain lists (ids, names, diameters metres, symmetric,
     control_points (M, 9, 3) metres, model_points (M, P, 3) metres, sym_transforms per object (S, 4, 4), and,
-    where the label file had them, shape_symmetries, texture_points and texture_colours per object);
+    where the label file had them, shape_symmetries, texture_points and texture_colours per object, and
+    part_symmetries and odd_points, those of a two-stage model from stage 2's label file);
     num_points: points sampled per frame; step: training steps done; extra: train config, metrics;
     normalisation: the network input's colour normalisation (``detector.data.augment.input_normalisation``: with
     "colour": "none" the network has no colour input);
@@ -138,8 +139,12 @@ def load_checkpoint(path: str | Path, device: str | torch.device = "cpu", sampli
         payload = {**payload, "model_config": {**stored, "npoints": [keypoints, *npoints[1:]]}}
     model, cfg = build_model(payload, path, device)
     model.eval()
+    objects = payload["objects"]
+    if stage2 is not None and (stage2.get("objects") or {}).get("part_symmetries"):
+        # the part symmetries stage 2 was taught under are those of its label file (stage 1 may have had another)
+        objects = {**objects, **{k: stage2["objects"][k] for k in ("part_symmetries", "odd_points")}}
     return Checkpoint(model=model, model_config=cfg, class_ids=list(payload["class_ids"]),
-                      objects=payload["objects"], num_points=num_points, step=int(payload["step"]),
+                      objects=objects, num_points=num_points, step=int(payload["step"]),
                       extra=payload.get("extra") or {}, normalisation=payload.get("normalisation") or {},
                       stage2_net=stage2_net, stage2=stage2,
                       geometry_config=dict(extra_top.get("geometry_config") or {}),

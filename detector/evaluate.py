@@ -47,9 +47,12 @@ def evaluate(predictor: Predictor, label_path: str | Path, out_dir: str | Path, 
              cfg: GeometryConfig | None = None, frames: list[int] | None = None, min_visib: float = 0.1,
              device: str = "cpu", progress: bool = False, poser=None, method: str = METHOD,
              dataset_name: str | None = None, bop_dataset: str | Path | None = None, bop19: bool = True,
-             sampling: dict | None = None) -> dict:
+             sampling: dict | None = None, objects: ObjectInfo | None = None) -> dict:
     """Evaluate ``predictor`` on a label file and write the report into ``out_dir``.
 
+    objects: what the inference knows of the objects (a model's: :func:`detector.infer.checkpoint_objects`, with the
+    part symmetries its stage 2 was taught under); None: the label file's object table. Poses are scored against
+    the label file's either way.
     Ground-truth instances with ``visib_fract < min_visib`` are ignored (neither missed nor matched). poser: a
     two-stage model's stage 2 (see :func:`estimate`). The BOP results file is ``METHOD_DATASET-SPLIT.csv``
     (:func:`detector.report.bop_csv_name`): ``method``, ``dataset_name`` (default: the BOP toolkit's name for a
@@ -81,7 +84,7 @@ def evaluate(predictor: Predictor, label_path: str | Path, out_dir: str | Path, 
             lf.attrs.get("source_dataset", "")), split)
         table = lf.objects
         source = (root, split, str(lf.attrs.get("source_argen_json") or ""))
-        objects = ObjectInfo.from_table(table)
+        objects = objects if objects is not None else ObjectInfo.from_table(table)
         idx = range(lf.num_frames) if frames is None else frames
         it = idx
         if progress:

@@ -19,6 +19,7 @@ from argen.features import check_max_depth
 from detector.config import apply_set_options, parse_set_options
 from detector.errors import DetectorError, argen_errors
 from detector.geometry.colour_check import colour_checked
+from detector.geometry.part_check import part_checked
 from detector.geometry.icp import refine
 from detector.geometry.types import Detection, GeometryConfig, ObjectInfo
 from detector.geometry.verify import depth_checked, range_image
@@ -45,7 +46,11 @@ def estimate(preds: Predictions, objects: ObjectInfo, cfg: GeometryConfig, timin
     other-class copy below that threshold is dropped before ICP (ICP lifts right poses of the stage-1 class from
     below it, measured; the copies are many and mostly wrong). With ``cfg.colour_check`` and ``features``, an
     object whose print breaks its shape's symmetries is turned to the way round its print matches
-    (:func:`detector.geometry.colour_check.colour_checked`), before and after ICP. Adds "depth_check" seconds.
+    (:func:`detector.geometry.colour_check.colour_checked`), before and after ICP. With ``cfg.part_check`` and a
+    cloud, an object with a part symmetry is turned about its axis to where the frame's depth allows its odd part
+    (:func:`detector.geometry.part_check.part_checked`), after ICP (which may find the part's faint traces first;
+    measured: checked before ICP as well, the real mug lost the poses ICP had put right). Adds "depth_check"
+    seconds (the range image's too).
     """
     dets = detect(preds.xyz, preds.obj_ids, preds.confidence, preds.control_points, objects, cfg, timings)
     if poser is not None:
@@ -53,10 +58,13 @@ def estimate(preds: Predictions, objects: ObjectInfo, cfg: GeometryConfig, timin
             dets = other_classes(dets, preds.class_probs, preds.class_ids, objects, cfg.other_classes, cfg.nms_fraction)
         dets = poser(dets, features, timings)
     t0 = time.perf_counter()
-    frame = range_image(cloud) if cfg.depth_check and cloud is not None else None
-    if frame is not None:
-        dets = depth_checked(dets, frame, objects, cfg)
+    parts = cfg.part_check and cloud is not None and bool(objects.part_symmetries)
+    frame = range_image(cloud) if (cfg.depth_check or parts) and cloud is not None else None
     t_check = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    if frame is not None and cfg.depth_check:
+        dets = depth_checked(dets, frame, objects, cfg)
+    t_check += time.perf_counter() - t0
     if poser is not None:
         dets = nms(dets, objects.diameters, cfg.nms_fraction)
     lo = cfg.min_score if cfg.min_score_unrefined is None else cfg.min_score_unrefined
@@ -67,13 +75,15 @@ def estimate(preds: Predictions, objects: ObjectInfo, cfg: GeometryConfig, timin
         dets = colour_checked(dets, cloud, colours, objects, cfg, icp=False, timings=timings)
         if refined is not None:
             refined = colour_checked(refined, cloud, colours, objects, cfg, icp=True, timings=timings)
-    if refined is not None and frame is not None:  # ICP rescored the two-stage detections: check them again
+    if refined is not None and parts:
+        refined = part_checked(refined, frame, cloud, objects, cfg, icp=True, timings=timings)
+    if refined is not None and frame is not None and cfg.depth_check:  # ICP rescored the two-stage ones: again
         t0 = time.perf_counter()
         again = [k for k, d in enumerate(refined) if d.points is not None]
         for k, d in zip(again, depth_checked([refined[k] for k in again], frame, objects, cfg)):
             refined[k] = d
         t_check += time.perf_counter() - t0
-    if frame is not None and timings is not None:
+    if frame is not None and cfg.depth_check and timings is not None:
         timings["depth_check"] = timings.get("depth_check", 0.0) + t_check
     return ([d for d in dets if d.score >= lo],
             [d for d in refined if d.score >= cfg.min_score] if refined is not None else None)

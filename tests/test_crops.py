@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 import torch
 import yaml
+from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 from typer.testing import CliRunner
 
@@ -15,6 +16,7 @@ from argen.label import LabelConfig, LabelRequest, run_label
 from detector.stage2.network import CropNet, CropNetConfig, EdgeConv, _NeighbourMax, crop_loss
 from detector.stage2.crops import (
     CropConfig,
+    PartTurns,
     ball_rows,
     crop_input,
     crop_region,
@@ -29,7 +31,7 @@ from detector.stage2.crops import (
 from detector.data.augment import NORMALISATION, input_normalisation
 from detector.errors import DetectorError
 from detector.geometry.kabsch import kabsch_batch, ransac_kabsch
-from detector.stage2.dataset import CropDataset, collate_crops
+from detector.stage2.dataset import CropDataset, collate_crops, crop_symmetries, part_turns
 from detector.stage2.train import load_stage2_config
 
 
@@ -334,6 +336,9 @@ def test_edge_convolution_equals_its_definition_per_point():
     from detector.stage2.train import saved_settings
 
     assert saved_settings({"net": {"k": 12, "norm_before_max": False}, "steps": 3}) == {"net": {"k": 12}, "steps": 3}
+    # one started before part symmetries is resumed without them; a new run has them
+    assert saved_settings({"crop": {"colour": "none"}})["crop"]["part_turns"] is False
+    assert CropConfig().part_turns is True
 
 
 def test_roll_about_the_ray_keeps_the_centre_and_model_coordinates():
@@ -601,12 +606,23 @@ def test_stage1_data_trains_stage1_on_its_own_file(labels, tmp_path):
     plain = tmp_path / "plain.h5"
     run_label(LabelRequest(dataset=tmp_path / "plain", split="train_pbr", out=plain, progress=False,
                            cfg=LabelConfig(max_points=20000)))
+    import h5py
+
+    with h5py.File(plain, "r+") as f:  # stage 1's file as one written before part symmetries
+        for k in ("part_sym", "part_sym_offsets", "odd_points", "odd_offsets"):
+            del f[f"objects/{k}"]
     out = tmp_path / "run"
     r = run.invoke(det_app, ["train", str(labels), "--out", str(out), "--stage1-data", str(plain),
                              *tiny_two_stage_args(2, 2)])
     assert r.exit_code == 0, r.output
     assert read_checkpoint(out / "stage1" / "last.pt")["extra"]["train_file"] == str(plain)
     assert read_checkpoint(out / "model.pt")["extra"]["train_file"] == str(labels)
+    # the model poses the mug with the part symmetry stage 2 was taught under, from stage 2's file
+    from detector.checkpoint import load_checkpoint
+    from detector.infer import checkpoint_objects
+
+    objects = checkpoint_objects(load_checkpoint(out / "model.pt"))[0]
+    assert set(objects.part_symmetries) == {2} and len(objects.odd_points[2]) > 1000
     other = write_synthetic_h5(tmp_path / "other.h5", num_frames=2, seed=0)  # objects 1 and 5
     for name, args, why in (
             ("r2", ["--stage1-data", str(other)], "both stages must learn the same objects"),
@@ -1086,3 +1102,59 @@ def test_ransac_scored_on_a_subset_refits_on_every_correspondence():
     assert np.linalg.norm(te - t) < 0.001
     assert inl.shape == (600,) and inl[~bad].all()  # the inliers of all 600, not only of the 64 scored
     assert inl[bad].mean() < 0.05  # (an outlier may land within 1 cm by chance)
+
+
+def test_mug_crops_hiding_the_handle_are_taught_up_to_turns_about_its_body(labels):
+    """The built-in mug's label-file row has its part symmetry; a crop whose foreground does not show the handle gets
+    the 36 turns about the body as targets (after each of its own), each of which keeps its points on the mug's
+    surface; one that shows it gets the mug's own."""
+    from detector.data.frames import object_table_dict
+    from detector.stage2.crops import ODD_SEEN
+
+    cfg = CropConfig(centre_jitter=0.0, colour="none")
+    with LabelFile(labels) as lf:
+        tab = lf.objects
+        m = tab.index(2)
+        assert len(tab.part_symmetries[m]) == 35 and len(tab.odd_points[m]) > 1000
+        assert all(len(tab.part_symmetries[k]) == 0 for k in range(len(tab)) if k != m)  # bottle, bracket, ...
+        objects = object_table_dict(tab)
+        sym = crop_symmetries(objects, cfg)
+        parts = part_turns(objects, sym)
+        own = len(sym[2])  # the identity, and the half turn about x that only the mug's colours break
+        assert set(parts) == {2} and len(parts[2].symmetries) == 36 * own
+        dia = float(tab.diameters[m])
+        surface = cKDTree(np.concatenate([tab.model_points[m], tab.odd_points[m]]))
+        seen = set()
+        for i in range(lf.num_frames):
+            f = lf.frame(i)
+            for g in np.flatnonzero(f.instances.obj_id == 2):
+                for seed in range(6):
+                    c = training_crop(f, g, dia, sym[2], cfg, np.random.default_rng(seed), NORMALISATION,
+                                      part=parts[2])
+                    if c is None:
+                        continue
+                    fg = c["fg"] > 0
+                    on_odd = np.isfinite(cKDTree(tab.odd_points[m]).query(
+                        c["coords"][0][fg] * dia, distance_upper_bound=0.03 * dia)[0]).sum()
+                    shown = on_odd >= ODD_SEEN
+                    seen.add(bool(shown))
+                    assert len(c["coords"]) == (own if shown else 36 * own)
+                    np.testing.assert_allclose(c["coords"][0], training_crop(
+                        f, g, dia, sym[2], cfg, np.random.default_rng(seed), NORMALISATION)["coords"][0])
+                    if not shown:  # every turn keeps the seen body on the mug (scan noise aside)
+                        d = surface.query(c["coords"][:, fg].reshape(-1, 3) * dia)[0]
+                        assert np.quantile(d, 0.95) < 0.01
+    assert True in seen  # the capture shows the handle in some crops
+
+
+def test_part_turns_count_odd_part_points_and_need_a_part():
+    odd = np.array([[0.05, 0.0, z] for z in np.linspace(-0.02, 0.02, 21)])
+    part = PartTurns.build(np.eye(4)[None], np.stack([np.eye(4)] * 3), odd, 0.1)
+    assert len(part.symmetries) == 4
+    handle = odd[:6] / 0.1 + [0.01, 0, 0]  # 1 mm beside the odd part, in diameters
+    body = np.array([[0.0, 0.02, 0.0]] * 10) / 0.1
+    assert part.shown(handle) and not part.shown(body) and not part.shown(handle[:4])
+    assert part.crop_symmetries(np.eye(4)[None], handle).shape == (1, 4, 4)
+    assert part.crop_symmetries(np.eye(4)[None], np.vstack([body, handle[:4]])).shape == (4, 4, 4)
+    assert PartTurns.build(np.eye(4)[None], np.zeros((0, 4, 4)), odd, 0.1) is None
+    assert PartTurns.build(np.eye(4)[None], np.stack([np.eye(4)]), np.zeros((0, 3)), 0.1) is None

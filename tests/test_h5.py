@@ -186,3 +186,22 @@ def test_corrupt_chunk_is_a_one_line_error(written, tmp_path):
         with pytest.raises(ArgenError, match="damaged: cannot read frame 0") as e:
             lf.frame(0)
     assert "\n" not in str(e.value)
+
+
+def test_part_symmetries_and_odd_points_round_trip_and_old_files_have_none(tmp_path):
+    objs = object_table()
+    path = write_label_file(tmp_path / "old.h5", ATTRS, objs, [])
+    with LabelFile(path) as lf:
+        assert lf.objects.part_symmetries == [] and lf.objects.odd_points == []
+    turn = np.eye(4, dtype=np.float32)
+    turn[:2, :2] = [[0, -1], [1, 0]]
+    objs.part_symmetries = [np.zeros((0, 4, 4), np.float32), turn[None]]
+    objs.odd_points = [np.zeros((0, 3), np.float32), np.arange(12, dtype=np.float32).reshape(4, 3) / 100]
+    path = write_label_file(tmp_path / "new.h5", ATTRS, objs, [])
+    with LabelFile(path) as lf:
+        for a, b in zip(lf.objects.part_symmetries + lf.objects.odd_points, objs.part_symmetries + objs.odd_points):
+            np.testing.assert_array_equal(a, b)
+    with h5py.File(path, "r+") as f:  # offsets that do not match the data: a one-line error
+        f["objects/odd_offsets"][2] = 3
+    with pytest.raises(ArgenError, match="odd_points"):
+        LabelFile(path)

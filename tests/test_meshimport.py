@@ -208,3 +208,15 @@ def test_cli_import_and_capture_sim_with_a_plain_mesh_folder(tmp_path):
     assert gts and {g["obj_id"] for g in gts} == {2}
     objs, notes = load_any_models(src / "can.stl")  # one mesh file works too
     assert [o.name for o in objs] == ["can"] and "a mesh file" in notes[0]
+
+
+def test_import_reports_a_mugs_part_symmetry(tmp_path):
+    """The importer says what `argen label` will store: the mug's turns about its body (its handle the odd part)."""
+    mug = builtin_objects(["mug"])[0]
+    path = tmp_path / "mug.ply"
+    mug.mesh.export(path)
+    (o,) = import_meshes([path], ImportOptions(units="m"))
+    assert "part symmetry: turns about (0.00, 0.00, 1.00)" in o.symmetry_note, o.symmetry_note
+    C.cylinder(0.03, 0.1, sections=40).export(tmp_path / "can.stl")
+    (can,) = import_meshes([tmp_path / "can.stl"], ImportOptions(units="m"))
+    assert "continuous" in can.symmetry_note and "part symmetry" not in can.symmetry_note  # nothing to add

@@ -35,7 +35,7 @@ from argen.models.objects import (
     write_models,
     write_models_eval,
 )
-from argen.models.symmetry import DEFAULT_TOL, Symmetries, find_symmetries, turn
+from argen.models.symmetry import DEFAULT_TOL, Symmetries, find_part_symmetry, find_symmetries, turn
 from argen.models.texture import PRINT_TOL, print_moves
 
 #: File types read (what trimesh loads as triangle meshes).
@@ -350,6 +350,9 @@ def import_mesh(path: Path, obj_id: int, opts: ImportOptions,
         sym_note = sym.describe()
         if coloured and (sym.discrete or sym.continuous):
             sym_note += _keep_printed(mesh, info)
+        if not info.symmetries_continuous:  # what `argen label` will store for it (argen.label.object_table)
+            part = find_part_symmetry(mesh, info.diameter)
+            sym_note += "; part symmetry: " + ("none" if part is None else part.describe())
     model = ObjectModel(obj_id, name, mesh, info, source=str(path))
     return ImportedObject(model, path, units, note, repairs, sym, sym_note, coloured)
 

@@ -25,11 +25,13 @@ mesh's units (metres here); axes (3,) unit vectors.
 
 from __future__ import annotations
 
+import hashlib
 from dataclasses import dataclass, field
 
 import numpy as np
 import open3d as o3d
 import trimesh
+from scipy.optimize import minimize
 
 from argen.models.objects import surface_scene
 
@@ -259,3 +261,199 @@ def find_symmetries(mesh: trimesh.Trimesh, diameter: float, tol: float = DEFAULT
     axes = [tidy(a * (1 if a[np.argmax(np.abs(a))] > 0 else -1)) for a in continuous]
     return Symmetries([tidy(T) for T in found], [{"axis": a, "offset": tidy(c)} for a in axes], moved,
                       None if not np.isfinite(best[0]) else float(best[0]), tol)
+
+
+# ------------------------------------------------------------------------------------ part symmetries
+
+#: Share of the surface that a part symmetry must keep (within the tolerance) for every turn. Measured (RANSAC axis,
+#: 5 % tolerance): the YCB mug keeps 0.955 (its handle is the rest); the LineMOD can, whose spout and handle are
+#: large, 0.72; the other LineMOD objects and the YCB gelatin and foam boxes at most 0.52.
+MIN_BODY = 0.8
+#: A part symmetry's odd part must be at least this share of the surface, else the shape is symmetric as a whole
+#: (what :func:`find_symmetries` reports) and any difference is print, not shape.
+MIN_ODD = 0.01
+#: Turns a part symmetry is taught under: every 10 degrees, as a continuous symmetry is (``argen.label``).
+PART_STEPS = 36
+
+
+@dataclass
+class PartSymmetry:
+    """An axis about which the surface turns onto itself except for an odd part (a mug's handle): while that part
+    is out of sight, every turn about the axis looks the same.
+
+    axis: (3,) unit; offset: (3,) a point on the axis, the mesh's units; body: share of the surface that every turn
+    keeps within the tolerance; odd_points: (K,3) surface samples that some turn moves further (the odd part);
+    tol: the tolerance (fraction of the diameter).
+    """
+
+    axis: np.ndarray
+    offset: np.ndarray
+    body: float
+    odd_points: np.ndarray
+    tol: float = DEFAULT_TOL
+
+    def turns(self, steps: int = PART_STEPS) -> np.ndarray:
+        """(steps-1, 4, 4) float64: the turns by k x 360/steps degrees about the axis, k = 1..steps-1."""
+        return np.stack([turn(self.axis, 2 * np.pi * k / steps, self.offset) for k in range(1, steps)])
+
+    def describe(self) -> str:
+        a, c = np.round(self.axis, 2) + 0.0, np.round(self.offset, 6) + 0.0  # no "-0.00"
+        return (f"turns about ({a[0]:.2f}, {a[1]:.2f}, {a[2]:.2f}) through ({c[0]:.4g}, {c[1]:.4g}, {c[2]:.4g}) keep "
+                f"{self.body:.0%} of the surface (tolerance {self.tol:.0%}); the rest is the odd part")
+
+
+def _rotation_field(points: np.ndarray, normals: np.ndarray) -> np.ndarray:
+    """Rows [p x n, n] (N,6): the surface is turned onto itself about the axis (a, through c) when every point's
+    velocity a x (p - c) is tangent, n . (a x p) + n . (c x a) = 0, which is linear in (a, c x a) (Pottmann and
+    Randrup's kinematic surfaces)."""
+    return np.hstack([np.cross(points, normals), normals])
+
+
+def _axis_from(x: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+    """(axis (3,) unit, its point nearest the origin (3,)) of the velocity field x = (a, m), its translation along
+    the axis dropped (a screw's pitch); None for a pure translation field."""
+    a, m = x[:3], x[3:]
+    na = float(np.linalg.norm(a))
+    if na < 1e-9:
+        return None
+    a, m = a / na, m / na
+    m = m - (a @ m) * a
+    return a, np.cross(a, m)
+
+
+def _tangent_residual(points: np.ndarray, normals: np.ndarray, a: np.ndarray, c: np.ndarray):
+    """Per point: |sin| of the angle between the turn's velocity and the tangent plane (N,), the velocity's length
+    (N,) and whether the normal runs along the axis (N,) bool (a face across the axis turns onto itself anywhere)."""
+    v = np.cross(a, points - c)
+    nv = np.linalg.norm(v, axis=1)
+    r = np.abs(np.einsum("ij,ij->i", normals, v)) / np.maximum(nv, 1e-12)
+    return r, nv, np.abs(normals @ a) > 0.995
+
+
+def _fit_axis(rows: np.ndarray, nv: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+    """Least-squares velocity field of the rows (each divided by its velocity's length: an angle, not a distance)."""
+    if len(rows) < 6:
+        return None
+    return _axis_from(np.linalg.svd(rows / np.maximum(nv, 1e-12)[:, None], full_matrices=False)[2][-1])
+
+
+def _worst_move(chk: _Checker, points: np.ndarray, a: np.ndarray, c: np.ndarray) -> np.ndarray:
+    """Per point (N,): the largest distance to the surface, as a fraction of the diameter, over the turns about the
+    axis by ``CONTINUOUS_ANGLES``."""
+    worst = np.zeros(len(points))
+    for ang in CONTINUOUS_ANGLES:
+        T = turn(a, ang, c)
+        q = points @ T[:3, :3].T + T[:3, 3]
+        d = chk.scene.compute_distance(o3d.core.Tensor(q.astype(np.float32))).numpy()
+        worst = np.maximum(worst, d / chk.diameter)
+    return worst
+
+
+def _polish_axis(chk: _Checker, body: np.ndarray, a: np.ndarray, c: np.ndarray,
+                 tol: float) -> tuple[np.ndarray, np.ndarray]:
+    """The axis near (a, c) that moves the body's points (B,3) least: the mean distance to the surface (each capped
+    at ``tol`` x diameter) of the points turned by 90, 180 and 270 degrees, minimised by Nelder-Mead over the
+    axis's two tilts and its two shifts across itself. The normals' least-squares fit is biased by scan noise near
+    the axis and by a part's points that happen to be tangent; this is the symmetry's own test."""
+    e1 = np.cross(a, [1.0, 0.0, 0.0] if abs(a[0]) < 0.9 else [0.0, 1.0, 0.0])
+    e1 /= np.linalg.norm(e1)
+    e2 = np.cross(a, e1)
+    cap = tol * chk.diameter
+    sample = body[:: max(1, len(body) // 1500)]
+
+    def axis_of(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        u = a + x[0] * e1 + x[1] * e2
+        return u / np.linalg.norm(u), c + (x[2] * e1 + x[3] * e2) * chk.diameter
+
+    def cost(x: np.ndarray) -> float:
+        u, o = axis_of(x)
+        total = 0.0
+        for ang in (np.pi / 2, np.pi, 3 * np.pi / 2):
+            T = turn(u, ang, o)
+            q = sample @ T[:3, :3].T + T[:3, 3]
+            total += float(np.minimum(chk.scene.compute_distance(o3d.core.Tensor(q.astype(np.float32))).numpy(),
+                                      cap).mean())
+        return total
+
+    res = minimize(cost, np.zeros(4), method="Nelder-Mead",
+                   options={"initial_simplex": np.vstack([np.zeros(4), 0.02 * np.eye(4)]), "xatol": 1e-4,
+                            "fatol": 1e-7 * chk.diameter, "maxiter": 400})
+    return axis_of(res.x)
+
+
+def find_part_symmetry(mesh: trimesh.Trimesh, diameter: float, tol: float = DEFAULT_TOL, min_body: float = MIN_BODY,
+                       n_points: int = 3000, n_odd: int = 50000, iterations: int = 300,
+                       seed: int = 0) -> PartSymmetry | None:
+    """The axis about which turns keep the most of the surface, when they keep at least ``min_body`` of it and no
+    more than ``1 - MIN_ODD``; else None. Units: the mesh's (diameter in the same).
+
+    Search: an axis turns a surface onto itself where the turn's velocity at each point is tangent to it, a linear
+    condition on the axis (:func:`_rotation_field`). RANSAC on surface samples with their face normals (8 per try,
+    ``iterations`` seeded tries, each refit to the normals it explains) finds axes the most normals agree with,
+    whatever the odd part does; each of the four best distinct ones is checked with exact distances (as
+    :func:`find_symmetries` checks), and one that comes near ``min_body`` is polished on its body's points
+    (:func:`_polish_axis`). Odd points: of ``n_odd`` surface samples, those some turn moves by more than ``tol`` x
+    diameter (at most 4000 kept, seeded).
+    """
+    if not 0 < tol < 1:
+        raise ValueError(f"symmetry tolerance must be a fraction of the diameter in (0, 1), got {tol}")
+    pts, face = trimesh.sample.sample_surface(mesh, n_points, seed=seed)
+    P, N = np.asarray(pts, float), np.asarray(mesh.face_normals, float)[face]
+    rows = _rotation_field(P, N)
+    rng = np.random.default_rng(seed)
+    tries = []
+    for _ in range(iterations):
+        got = _axis_from(np.linalg.svd(rows[rng.choice(len(P), 8, replace=False)])[2][-1])
+        if got is None:
+            continue
+        for _ in range(3):  # refit to the points it explains
+            r, nv, along = _tangent_residual(P, N, *got)
+            fit = (r < 0.1) & ~along & (nv > 1e-3 * diameter)
+            better = _fit_axis(rows[fit], nv[fit])
+            if better is None:
+                break
+            got = better
+        r, nv, along = _tangent_residual(P, N, *got)
+        tries.append((float(np.mean((r < 0.1) | along)), *got))
+    tries.sort(key=lambda x: -x[0])
+    chk = _Checker(mesh, diameter, n_points, seed, 1.0)
+    best: tuple[float, np.ndarray, np.ndarray] | None = None
+    distinct: list[tuple[np.ndarray, np.ndarray]] = []
+    for _, a, c in tries:
+        if any(abs(float(a @ b)) > 0.996 and np.linalg.norm(np.cross(c - d, b)) < 0.01 * diameter for b, d in distinct):
+            continue
+        distinct.append((a, c))
+        worst = _worst_move(chk, P, a, c)
+        body = float(np.mean(worst < tol))
+        if body >= min_body - 0.1:  # worth polishing: the axis that moves its body least
+            a, c = _polish_axis(chk, P[worst < tol], a, c, tol)
+            body = float(np.mean(_worst_move(chk, P, a, c) < tol))
+        if best is None or body > best[0]:
+            best = (body, a, c)
+        if len(distinct) == 4:
+            break
+    if best is None or not min_body <= best[0] <= 1 - MIN_ODD:
+        return None
+    body, a, c = best
+    dense = np.asarray(trimesh.sample.sample_surface(mesh, n_odd, seed=seed + 1)[0], float)
+    odd = dense[_worst_move(chk, dense, a, c) >= tol]
+    if len(odd) < MIN_ODD * n_odd:
+        return None
+    if len(odd) > 4000:
+        odd = odd[np.sort(np.random.default_rng(seed).choice(len(odd), 4000, replace=False))]
+    a = a if a[np.argmax(np.abs(a))] > 0 else -a
+    c = c - (c @ a) * a  # the axis's point nearest the mesh origin
+    return PartSymmetry(np.round(a, 9) + 0.0, np.round(c, 12) + 0.0, body, odd, tol)
+
+
+_FOUND: dict[tuple, PartSymmetry | None] = {}
+
+
+def part_symmetry_of(mesh: trimesh.Trimesh, diameter: float) -> PartSymmetry | None:
+    """:func:`find_part_symmetry` with its defaults, remembered for the process by the mesh's vertices and faces: a
+    second label file of the same models does not search again (a few seconds a model with a part symmetry)."""
+    key = (hashlib.sha1(np.ascontiguousarray(mesh.vertices, np.float64).tobytes()
+                        + np.ascontiguousarray(mesh.faces, np.int64).tobytes()).hexdigest(), float(diameter))
+    if key not in _FOUND:
+        _FOUND[key] = find_part_symmetry(mesh, diameter)
+    return _FOUND[key]

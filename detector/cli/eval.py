@@ -66,11 +66,12 @@ def register(app: typer.Typer) -> None:
             if n == 0:
                 raise DetectorError(f"{data} holds no frames")
             check_label_objects(ckpt, lf.objects)
-        poser = checkpoint_poser(ckpt, checkpoint_objects(ckpt)[0], device, seed)
+        objects = checkpoint_objects(ckpt)[0]
+        poser = checkpoint_poser(ckpt, objects, device, seed)
         s = evaluate(network_predictor(ckpt, seed), data, out, icp=icp, cfg=cfg, device=device,
                      frames=list(range(min(n, frames or n))), min_visib=min_visib, progress=not quiet,
                      poser=poser, method=method, dataset_name=dataset_name, bop_dataset=bop_dataset,
-                     sampling=ckpt.sampling_used)
+                     sampling=ckpt.sampling_used, objects=objects)
         key = "icp" if icp else "noicp"
         b = s["bop19"]
         ar = f"BOP19 AR: {b['bop19_average_recall']:.3f}  " if "skipped" not in b else ""

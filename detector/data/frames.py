@@ -110,7 +110,8 @@ def object_table_dict(objects) -> dict:
     """The label file's object table as plain lists (for checkpoints): ids, names, diameters, symmetric,
     control_points (M, 9, 3) metres, model_points (M, P, 3) metres, sym_transforms per object (S, 4, 4),
     shape_symmetries per object (T, 4, 4), texture_points (N, 3) metres and texture_colours (N, 3) 0-255 per
-    object (empty lists for a label file without them)."""
+    object, part_symmetries per object (P, 4, 4) and odd_points (K, 3) metres per object (empty lists for a label
+    file without them)."""
     return {
         "ids": [int(i) for i in objects.ids],
         "names": [str(n) for n in objects.names],
@@ -122,4 +123,6 @@ def object_table_dict(objects) -> dict:
         "shape_symmetries": [np.asarray(s, dtype=np.float32).tolist() for s in objects.shape_symmetries],
         "texture_points": [np.asarray(p, dtype=np.float32).tolist() for p in objects.texture_points],
         "texture_colours": [np.asarray(c, dtype=np.uint8).tolist() for c in objects.texture_colours],
+        "part_symmetries": [np.asarray(s, dtype=np.float32).tolist() for s in objects.part_symmetries],
+        "odd_points": [np.asarray(p, dtype=np.float32).tolist() for p in objects.odd_points],
     }

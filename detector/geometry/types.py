@@ -57,7 +57,10 @@ class GeometryConfig:
     points give at least this mean probability (:func:`detector.geometry.voting.other_classes`); > 1: never;
     colour_check: turn a detection of an object whose print breaks its shape's symmetries (a printed box) to the
     way round the frame's colours match (:func:`detector.geometry.colour_check.colour_checked`); needs the frame's
-    colours and a model whose label file carried the print (``ObjectInfo.texture``).
+    colours and a model whose label file carried the print (``ObjectInfo.texture``); part_check: turn a detection of
+    an object with a part symmetry (a mug, whose handle breaks its turns about its body) about its axis to where
+    the frame's depth allows its odd part to be (:func:`detector.geometry.part_check.part_checked`); needs the
+    frame's cloud and a model whose label file carried the part symmetry (``ObjectInfo.part_symmetries``).
     """
 
     tau: float = 0.8
@@ -89,6 +92,7 @@ class GeometryConfig:
     depth_consistent: float = 0.85
     other_classes: float = 0.1
     colour_check: bool = True
+    part_check: bool = True
 
 
 @dataclass
@@ -164,7 +168,10 @@ class ObjectInfo:
     model_points: {obj_id: (P,3) metres model frame}; shape_symmetries: {obj_id: (T,4,4)} the turns that map
     an object's shape onto itself but that its print breaks (only objects that have them and a print);
     texture: {obj_id: ((N,3) metres model frame, (N,3) RGB in [0, 1])} surface points and their colours, for the
-    same objects (:func:`detector.geometry.colour_check.colour_checked`).
+    same objects (:func:`detector.geometry.colour_check.colour_checked`); part_symmetries: {obj_id: (P,4,4)} the
+    turns by k x 360 / (P + 1) degrees (k = 1..P, in order) about an axis that map all of an object's surface but an
+    odd part onto itself, and odd_points: {obj_id: (K,3) metres model frame} samples of that part, for the objects
+    that have one (``argen.models.symmetry.find_part_symmetry``; :func:`detector.geometry.part_check.part_checked`).
     """
 
     control_points: dict[int, np.ndarray]
@@ -172,6 +179,8 @@ class ObjectInfo:
     model_points: dict[int, np.ndarray]
     shape_symmetries: dict[int, np.ndarray] = field(default_factory=dict)
     texture: dict[int, tuple[np.ndarray, np.ndarray]] = field(default_factory=dict)
+    part_symmetries: dict[int, np.ndarray] = field(default_factory=dict)
+    odd_points: dict[int, np.ndarray] = field(default_factory=dict)
     _clouds: dict = field(default_factory=dict, repr=False)
 
     @classmethod
@@ -191,12 +200,16 @@ class ObjectInfo:
         turns, tex_p, tex_c = optional("shape_symmetries"), optional("texture_points"), optional("texture_colours")
         textured = [k for k in range(len(ids)) if k < min(len(turns), len(tex_p), len(tex_c))
                     and len(turns[k]) and len(tex_p[k]) and len(tex_p[k]) == len(tex_c[k])]
+        parts, odd = optional("part_symmetries"), optional("odd_points")
+        with_part = [k for k in range(len(ids)) if k < min(len(parts), len(odd)) and len(parts[k]) and len(odd[k])]
         return cls({i: np.asarray(cps[k], np.float64) for k, i in enumerate(ids)},
                    {i: float(dia[k]) for k, i in enumerate(ids)},
                    {i: np.asarray(mp[k], np.float64) for k, i in enumerate(ids)},
                    {ids[k]: np.asarray(turns[k], np.float64).reshape(-1, 4, 4) for k in textured},
                    {ids[k]: (np.asarray(tex_p[k], np.float64).reshape(-1, 3),
-                             np.asarray(tex_c[k], np.float64).reshape(-1, 3) / 255.0) for k in textured})
+                             np.asarray(tex_c[k], np.float64).reshape(-1, 3) / 255.0) for k in textured},
+                   {ids[k]: np.asarray(parts[k], np.float64).reshape(-1, 4, 4) for k in with_part},
+                   {ids[k]: np.asarray(odd[k], np.float64).reshape(-1, 3) for k in with_part})
 
     def cloud(self, obj_id: int):
         """The cached open3d model cloud with normals of ``obj_id``."""

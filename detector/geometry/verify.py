@@ -82,6 +82,14 @@ def depth_consistency(ri: RangeImage, model_points: np.ndarray, R: np.ndarray, t
     (occluded, or the model's own far side) and on empty rays count for neither. Returns (K,) float64 in [0, 1], 0 where no point
     is either.
     """
+    seen, through = depth_votes(ri, model_points, R, t, tolerance, free_space)
+    return np.where(seen + through > 0, seen / np.maximum(seen + through, 1), 0.0)
+
+
+def depth_votes(ri: RangeImage, model_points: np.ndarray, R: np.ndarray, t: np.ndarray, tolerance: float,
+                free_space: float) -> tuple[np.ndarray, np.ndarray]:
+    """For each of K poses, how many model points (P,3) the frame sees and how many it sees through (as
+    :func:`depth_consistency` defines them). R (K,3,3), t (K,3) metres. Returns two (K,) int64."""
     R, t = np.asarray(R, np.float64), np.asarray(t, np.float64)
     x = np.einsum("kij,pj->kpi", R, np.asarray(model_points, np.float64)) + t[:, None]  # (K,P,3)
     flat = x.reshape(-1, 3)
@@ -89,7 +97,7 @@ def depth_consistency(ri: RangeImage, model_points: np.ndarray, R: np.ndarray, t
     zm = x[..., 2]
     seen = (np.isfinite(zs) & (np.abs(zs - zm) <= tolerance)).sum(axis=1)
     through = (np.isfinite(around) & (around > zm + free_space)).sum(axis=1)
-    return np.where(seen + through > 0, seen / np.maximum(seen + through, 1), 0.0)
+    return seen, through
 
 
 def depth_checked(detections: list, frame: RangeImage, objects, cfg) -> list:

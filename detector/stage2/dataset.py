@@ -11,7 +11,8 @@ import torch
 
 from detector.data.augment import input_normalisation
 from detector.data.frames import FrameSource
-from detector.stage2.crops import CropFrame, crop_region, negative_crop, shape_only_symmetries, training_crop
+from detector.stage2.crops import (CropFrame, PartTurns, crop_region, negative_crop, shape_only_symmetries,
+                                   training_crop)
 
 
 class CropDataset(FrameSource):
@@ -19,7 +20,8 @@ class CropDataset(FrameSource):
 
     ``dataset[(epoch, i)]`` is frame ``i``'s crops: ``features`` (c, n, 9), ``cls`` (c,) int64 class index
     (``class_ids[cls]`` is the object id), ``fg`` (c, n) float32, ``coords`` (c, S, n, 3) float32 model coordinates
-    in diameters under each of the S symmetries of :func:`crop_symmetries` (padded to the most any object has),
+    in diameters under each of the S symmetries of :func:`crop_symmetries` (for a crop that does not show its
+    object's odd part, of :func:`part_turns`; padded to the most any object has),
     ``sym_mask`` (c, S) bool and ``frame`` (c,) int64. An instance is used when its object is in ``class_ids``, its
     visible fraction and point count reach the crop config's minimums and its crop holds enough points; with
     ``crop.negatives`` some instances also give a negative crop (:func:`detector.stage2.crops.negative_crop`: no
@@ -40,7 +42,9 @@ class CropDataset(FrameSource):
         ids = self.objects["ids"]
         self.sym = crop_symmetries(self.objects, crop_cfg)
         self.diameters = {int(i): float(d) for i, d in zip(ids, self.objects["diameters"])}
-        self.max_sym = max(len(self.sym[c]) for c in self.class_ids)
+        self.parts = part_turns(self.objects, self.sym) if crop_cfg.part_turns else {}
+        self.max_sym = max(max(len(self.sym[c]), len(self.parts[c].symmetries) if c in self.parts else 0)
+                           for c in self.class_ids)
         self._crop_diameters = {c: self.diameters[c] for c in self.class_ids}  # the objects whose crops are cut
         self.cache_bytes = int(max(cache_mb, 0.0) * 2 ** 20)
         self._cache: dict[int, CropFrame] = {}
@@ -74,7 +78,7 @@ class CropDataset(FrameSource):
             if oid not in self.class_ids or inst.visib_fract[g] < cfg.min_visib or inst.num_points[g] < cfg.min_object_points:
                 continue
             c = training_crop(frame, g, self.diameters[oid], self.sym[oid], cfg, rng, self.normalisation,
-                                  self.augment)
+                              self.augment, self.parts.get(oid))
             if c is not None:
                 crops.append((self.class_ids.index(oid), c))
             if cfg.negatives > 0 and rng.random() < cfg.negatives:
@@ -107,6 +111,22 @@ def crop_symmetries(objects: dict, crop_cfg) -> dict[int, np.ndarray]:
     if crop_cfg.colour == "none" and crop_cfg.shape_turns and len(turns) == len(ids):
         sym = {i: shape_only_symmetries(sym[i], t) for i, t in zip(ids, turns)}
     return sym
+
+
+def part_turns(objects: dict, sym: dict[int, np.ndarray]) -> dict[int, PartTurns]:
+    """{object id: :class:`detector.stage2.crops.PartTurns`} of the objects with a part symmetry in the object table
+    (:func:`detector.data.frames.object_table_dict`; none in a label file written before part symmetries), built
+    on the symmetries ``sym`` (:func:`crop_symmetries`) they are otherwise taught under."""
+    ids = [int(i) for i in objects["ids"]]
+    turns, odd = objects.get("part_symmetries") or [], objects.get("odd_points") or []
+    if len(turns) != len(ids) or len(odd) != len(ids):
+        return {}
+    out = {}
+    for i, t, p, d in zip(ids, turns, odd, objects["diameters"]):
+        built = PartTurns.build(sym[i], t, p, d)
+        if built is not None:
+            out[i] = built
+    return out
 
 
 def collate_crops(items: Sequence[dict[str, torch.Tensor]]) -> dict[str, torch.Tensor]:

@@ -38,7 +38,7 @@ STAGE2_METRICS = ["step", "epoch", "loss", "fg", "coord", "fg_acc", "crops", "lr
 
 #: Settings added to Stage2TrainConfig after runs were first saved, with the value that reproduces a run saved
 #: without them (:func:`saved_settings`).
-STAGE2_ADDED_SETTINGS = {"crop.negatives": 0.0}
+STAGE2_ADDED_SETTINGS = {"crop.negatives": 0.0, "crop.part_turns": False}
 
 #: Stage2TrainConfig keys that may differ when resuming: they do not change the steps' numbers (``steps`` stretches
 #: or shortens the schedule from the step reached; the crop cache holds the same crops whatever its size).
@@ -189,8 +189,9 @@ def saved_settings(saved: dict) -> dict:
     """A stage-2 run's saved settings (a config dict) as this code writes them: runs started before
     ``net.norm_before_max`` was removed store it as false, which is the one network there is now; runs started
     before ``crop.shape_turns`` existed get the value that reproduces them (false for a colour-free stage 2, which
-    was taught its objects' own symmetries only; the default for any other, which the setting does not touch), and
-    runs started before ``crop.negatives`` existed none (0)."""
+    was taught its objects' own symmetries only; the default for any other, which the setting does not touch),
+    runs started before ``crop.negatives`` existed none (0) and those started before ``crop.part_turns`` existed
+    false (they were taught without part symmetries)."""
     out = dict(saved)
     net = dict(saved.get("net") or {})
     if net.get("norm_before_max") is False:
