@@ -42,10 +42,10 @@ def test_shipped_model_finds_the_objects_in_the_real_frames(real_labels, tmp_pat
                  poser=checkpoint_poser(ck, objects))
     box = np.array([r["obj_id"] == 8 for r in s["instances"]])
     assert len(box) == 30
-    # the shipped model (run L, seed 0) gets the foam brick right in 9 and 10 of 10 frames without and with ICP and
-    # the gelatin box in 10 and 9 (the box's way round chosen by its print, geometry.colour_check; the mug's handle
+    # the shipped model (run M, seed 0) gets the foam brick right in 9 and 10 of 10 frames without and with ICP and
+    # the gelatin box in 10 and 10 (the box's way round chosen by its print, geometry.colour_check; the mug's handle
     # is hidden: RESULTS.md); a model that finds nothing, or finds the objects but not their orientation, gets none,
-    # and the previous model (stage 2 with colour) got no gelatin box within 10 % before ICP
+    # and run K's model (stage 2 with colour) got no gelatin box within 10 % before ICP
     for key in ("noicp", "icp"):
         errs = np.array([np.inf if r[key] is None else r[key] / r["diameter"] for r in s["instances"]])
         assert np.sum(errs < 0.1) >= 16, (key, np.round(errs, 3))
@@ -107,3 +107,39 @@ def test_shipped_stage1_labels_the_real_mug(real_labels):
             right += int(np.sum(on_mug & (np.asarray(p.obj_ids) == 14)))
     assert mug > 50
     assert right / mug > 0.5, (right, mug)
+
+
+def test_shipped_model_puts_the_real_mug_on_its_axis(real_labels):
+    """The mug's handle is hidden in every frame, so its turn about its body is not in them; its axis is. The
+    shipped model carries the part symmetry its stage 2 was taught under (the mug's model z axis), and after ICP
+    its mug poses put that axis within 5 mm and 6 degrees of the true one in most frames (RESULTS.md, "The mug's
+    hidden handle"; the previous model's stage 2, taught the mug exactly, put it 4-12 cm off)."""
+    from argen.models.symmetry import rotation_angle_axis
+    from detector.infer import estimate
+
+    ck = load_checkpoint(CKPT)
+    objects = checkpoint_objects(ck)[0]
+    turns = objects.part_symmetries[14]
+    assert len(turns) == 35 and len(objects.odd_points[14]) > 1000
+    _, axis = rotation_angle_axis(turns[0][:3, :3])
+    assert abs(axis[2]) > 0.99  # the YCB mug stands on its model z axis
+    point = np.linalg.lstsq(np.eye(3) - turns[0][:3, :3], turns[0][:3, 3], rcond=None)[0]
+    cfg = checkpoint_geometry_config(ck, None, True)
+    pred, poser = network_predictor(ck), checkpoint_poser(ck, objects)
+    on_axis = 0
+    with LabelFile(real_labels) as lf:
+        for i in range(lf.num_frames):
+            fr = lf.frame(i)
+            g = int(np.flatnonzero(fr.instances.obj_id == 14)[0])
+            R, t = fr.instances.R[g].astype(float), fr.instances.t[g].astype(float)
+            _, refined = estimate(pred(fr), objects, cfg, {}, fr.features[:, :3], poser, fr.features)
+            mugs = [d for d in refined if d.obj_id == 14]
+            if not mugs:
+                continue
+            d = max(mugs, key=lambda d: d.score)
+            a_true = R @ axis
+            off = (d.R @ point + d.t) - (R @ point + t)
+            across = np.linalg.norm(off - (off @ a_true) * a_true)
+            tilt = np.degrees(np.arccos(min(1.0, abs(float(a_true @ (d.R @ axis))))))
+            on_axis += int(across < 0.005 and tilt < 6)
+    assert on_axis >= 6, on_axis
