@@ -45,6 +45,18 @@ def check_objects(o: ObjectTable) -> list[str]:
             errs.append(f"objects: symmetry transforms of object {o.ids[m]} do not start with the identity")
         elif o.symmetric[m] != (len(s) > 1):
             errs.append(f"objects: object {o.ids[m]} symmetric flag disagrees with its {len(s)} transforms")
+    for m, (turns, odd) in enumerate(zip(o.part_symmetries, o.odd_points)):  # none in files written before them
+        turns, odd = np.asarray(turns, np.float64).reshape(-1, 4, 4), np.asarray(odd, np.float64).reshape(-1, 3)
+        if (len(turns) == 0) != (len(odd) == 0):
+            errs.append(f"objects: object {o.ids[m]} has {len(turns)} part turns and {len(odd)} odd-part points")
+            continue
+        R = turns[:, :3, :3]
+        if len(turns) and (np.abs(R @ R.transpose(0, 2, 1) - np.eye(3)).max() > ROT_TOL
+                           or np.abs(np.linalg.det(R) - 1).max() > ROT_TOL):
+            errs.append(f"objects: a part turn of object {o.ids[m]} is not a rotation")
+        lo, hi = o.corners[m].min(axis=0), o.corners[m].max(axis=0)
+        if len(odd) and np.any((odd < lo - 1e-4) | (odd > hi + 1e-4)):
+            errs.append(f"objects: odd-part points of object {o.ids[m]} lie outside its box")
     return errs
 
 

@@ -1117,6 +1117,9 @@ def test_mug_crops_hiding_the_handle_are_taught_up_to_turns_about_its_body(label
         m = tab.index(2)
         assert len(tab.part_symmetries[m]) == 35 and len(tab.odd_points[m]) > 1000
         assert all(len(tab.part_symmetries[k]) == 0 for k in range(len(tab)) if k != m)  # bottle, bracket, ...
+        from argen.validate import check_objects
+
+        assert check_objects(tab) == []  # argen validate's rules hold for a table with a part symmetry
         objects = object_table_dict(tab)
         sym = crop_symmetries(objects, cfg)
         parts = part_turns(objects, sym)

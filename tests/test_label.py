@@ -174,19 +174,30 @@ def test_validate_accepts_then_rejects_tampered_labels(builtin_ds, tmp_path):
     path = builtin_ds[1]
     r = cli("validate", path)
     assert r.exit_code == 0 and "valid (" in r.output
-    for what in ("control_points", "semantic"):
+    messages = {"control_points": "control points differ", "semantic": "semantic label",
+                "part_sym": "is not a rotation", "odd_points": "outside its box"}  # and valid ones pass: above
+    for what, message in messages.items():
         bad = tmp_path / f"bad_{what}.h5"
         shutil.copy(path, bad)
         with h5py.File(bad, "r+") as f:
             if what == "control_points":
                 f["instances/control_points"][1, 3, 0] += 0.01
-            else:
+            elif what == "semantic":
                 sem = f["points/semantic"]
                 i = int(np.flatnonzero(sem[()] > 0)[0])
                 sem[i] = 0
+            else:  # the first object given a part symmetry: a turn scaled by 1.1, or odd points 1 m off
+                n = len(f["objects/ids"])
+                turn = np.eye(4, dtype=np.float32)[None] * (1.1 if what == "part_sym" else 1.0)
+                turn[0, 3, 3] = 1.0
+                odd = f["objects/model_points"][0, :3] + (0.0 if what == "part_sym" else 1.0)
+                for name, data in (("part_sym", turn), ("part_sym_offsets", np.r_[0, [1] * n]),
+                                   ("odd_points", odd), ("odd_offsets", np.r_[0, [3] * n])):
+                    del f[f"objects/{name}"]
+                    f[f"objects/{name}"] = data
         r = cli("validate", bad)
         assert r.exit_code == 1
-        assert ("control points differ" if what == "control_points" else "semantic label") in r.output
+        assert message in r.output, r.output
 
 
 def test_preview_of_file_and_of_bop_scene(builtin_ds, tmp_path):
