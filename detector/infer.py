@@ -19,8 +19,8 @@ from argen.features import check_max_depth
 from detector.config import apply_set_options, parse_set_options
 from detector.errors import DetectorError, argen_errors
 from detector.geometry.colour_check import colour_checked
-from detector.geometry.part_check import part_checked
 from detector.geometry.icp import refine
+from detector.geometry.part_check import part_checked
 from detector.geometry.types import Detection, GeometryConfig, ObjectInfo
 from detector.geometry.verify import depth_checked, range_image
 from detector.geometry.voting import detect, nms, other_classes
@@ -48,8 +48,8 @@ def estimate(preds: Predictions, objects: ObjectInfo, cfg: GeometryConfig, timin
     object whose print breaks its shape's symmetries is turned to the way round its print matches
     (:func:`detector.geometry.colour_check.colour_checked`), before and after ICP. With ``cfg.part_check`` and a
     cloud, an object with a part symmetry is turned about its axis to where the frame's depth allows its odd part
-    (:func:`detector.geometry.part_check.part_checked`), after ICP (which may find the part's faint traces first;
-    measured: checked before ICP as well, the real mug lost the poses ICP had put right). Adds "depth_check"
+    (:func:`detector.geometry.part_check.part_checked`), after ICP only: from a half-turned start ICP sometimes
+    finds the turn itself, and a check before it would move such poses away (RESULTS.md). Adds "depth_check"
     seconds (the range image's too).
     """
     dets = detect(preds.xyz, preds.obj_ids, preds.confidence, preds.control_points, objects, cfg, timings)
