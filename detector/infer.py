@@ -48,9 +48,9 @@ def estimate(preds: Predictions, objects: ObjectInfo, cfg: GeometryConfig, timin
     object whose print breaks its shape's symmetries is turned to the way round its print matches
     (:func:`detector.geometry.colour_check.colour_checked`), before and after ICP. With ``cfg.part_check`` and a
     cloud, an object with a part symmetry is turned about its axis to where the frame's depth allows its odd part
-    (:func:`detector.geometry.part_check.part_checked`), after ICP only: from a half-turned start ICP sometimes
-    finds the turn itself, and a check before it would move such poses away (RESULTS.md). Adds "depth_check"
-    seconds (the range image's too).
+    (:func:`detector.geometry.part_check.part_checked`): the poses after ICP, and the unrefined ones once ICP has
+    started from them as they were (from a half-turned start ICP sometimes finds the turn itself, and a check before
+    it would move such poses away: RESULTS.md). Adds "depth_check" seconds (the range image's too).
     """
     dets = detect(preds.xyz, preds.obj_ids, preds.confidence, preds.control_points, objects, cfg, timings)
     if poser is not None:
@@ -75,6 +75,8 @@ def estimate(preds: Predictions, objects: ObjectInfo, cfg: GeometryConfig, timin
         dets = colour_checked(dets, cloud, colours, objects, cfg, icp=False, timings=timings)
         if refined is not None:
             refined = colour_checked(refined, cloud, colours, objects, cfg, icp=True, timings=timings)
+    if parts:  # the unrefined poses once ICP has started from them as they were
+        dets = part_checked(dets, frame, cloud, objects, cfg, icp=False, timings=timings)
     if refined is not None and parts:
         refined = part_checked(refined, frame, cloud, objects, cfg, icp=True, timings=timings)
     if refined is not None and frame is not None and cfg.depth_check:  # ICP rescored the two-stage ones: again

@@ -70,7 +70,8 @@ def part_checked(detections: list, frame: RangeImage, cloud: np.ndarray, objects
     frame: the frame's :class:`detector.geometry.verify.RangeImage`; cloud: (M,3) camera frame, metres, the points it
     was made of; objects: the :class:`detector.geometry.types.ObjectInfo`; cfg: the
     :class:`detector.geometry.types.GeometryConfig` (depth tolerance and free-space margin as
-    :func:`detector.geometry.verify.depth_checked` takes them). With ``icp``, a turned two-stage detection (one that
+    :func:`detector.geometry.verify.depth_checked` takes them). ``detector.infer.estimate`` checks the poses after
+    ICP and the unrefined ones after ICP has started from them. With ``icp``, a turned two-stage detection (one that
     carries ``points``) is refined by ICP from there alone (:func:`detector.geometry.icp.refine_pose`) and rescored
     (its support); a turn changes no score otherwise (the body, which the score sees, is the same). Adds
     "part_check" seconds."""
