@@ -1,7 +1,8 @@
 """How stage 2 poses an object about its part symmetry's axis (RESULTS.md, "The mug's hidden handle"): for each frame,
 the stage-1 detections of the object near its true centre are cropped as at inference, and the script prints how many
 of the crop's points are the object's and how many of those stage 2 calls foreground, how far its model coordinates
-lie from the axis against the true ones (medians), how far the centre of its pose (its box's: with the handle turned
+lie from the axis against the true ones (medians), how many of the odd part's samples (the handle) the frame's depth
+sees at the true pose (``detector.geometry.verify.depth_votes``, the part check's count), how far the centre of its pose (its box's: with the handle turned
 away, a turn moves it) lies from the true centre, and how far its pose puts the axis from the true one.
 
     python examples/ycbv_real/mug_probe.py MODEL LABELS OBJ_ID [--seed S]
@@ -22,6 +23,8 @@ from argen.h5 import LabelFile
 from argen.models.symmetry import rotation_angle_axis
 from detector.checkpoint import load_checkpoint
 from detector.errors import DetectorError
+from detector.geometry.icp import support_radius
+from detector.geometry.verify import depth_votes, range_image
 from detector.geometry.voting import detect
 from detector.infer import checkpoint_geometry_config, checkpoint_objects, checkpoint_poser
 from detector.stage1.predictor import network_predictor
@@ -77,17 +80,23 @@ def main() -> None:
     objects, _ = checkpoint_objects(ck)
     cfg = checkpoint_geometry_config(ck, None, True, None, [])
     poser, pred = checkpoint_poser(ck, objects, "cpu", a.seed), network_predictor(ck, a.seed)
-    print("| frame | object points in crop | called foreground | axis distance true / predicted (cm) | "
-          "pose centre off (cm) | pose axis off (mm) / tilted (deg) | score |")
-    print("|---:|---:|---:|---:|---:|---:|---:|")
+    odd = objects.odd_points.get(a.obj_id, np.zeros((0, 3)))
+    tol = cfg.depth_tolerance * support_radius(cfg.support_distance, cfg.support_floor, objects.diameters[a.obj_id])
+    print("| frame | odd part seen at the true pose | object points in crop | called foreground | axis distance true / "
+          "predicted (cm) | pose centre off (cm) | pose axis off (mm) / tilted (deg) | score |")
+    print("|---:|---:|---:|---:|---:|---:|---:|---:|")
     with LabelFile(a.labels) as lf:
         for i in range(lf.num_frames):
             fr = lf.frame(i)
             inst = fr.instances
             p = pred(fr)
             dets = detect(p.xyz, p.obj_ids, p.confidence, p.control_points, objects, cfg, {})
+            ri = range_image(np.asarray(fr.features[:, :3], np.float64))
             for g in np.flatnonzero(inst.obj_id == a.obj_id):
                 c, dia = inst.control_points[g][8], objects.diameters[a.obj_id]
+                seen = depth_votes(ri, odd, inst.R[g][None].astype(np.float64), inst.t[g][None].astype(np.float64),
+                                   tol, 2 * tol)[0][0] if len(odd) else 0
+                shown = f"{int(seen)} of {len(odd)}"
                 for d in dets:
                     if d.obj_id != a.obj_id or np.linalg.norm(d.control_points[8] - c) >= 0.5 * dia:
                         continue
@@ -95,7 +104,7 @@ def main() -> None:
                                            np.array([poser.class_ids.index(a.obj_id)]), np.array([dia]),
                                            poser.crop_cfg, poser.normalisation, a.seed)[0]
                     if out is None:
-                        print(f"| {i} | crop too small | | | | |")
+                        print(f"| {i} | {shown} | crop too small | | | | | |")
                         continue
                     rows, prob, mxyz = out
                     own = np.asarray(fr.instance)[rows] == g
@@ -106,7 +115,7 @@ def main() -> None:
                     axis_off = ("{:.1f} / {:.1f}".format(*axis_error(posed[0].R, posed[0].t, inst.R[g], inst.t[g],
                                                                     axis, offset)) if posed else "")
                     score = f"{posed[0].score:.2f}" if posed else ""
-                    print(f"| {i} | {int(own.sum())} of {len(rows)} | {int(((prob >= 0.5) & own).sum())} | "
+                    print(f"| {i} | {shown} | {int(own.sum())} of {len(rows)} | {int(((prob >= 0.5) & own).sum())} | "
                           f"{100 * np.median(r_true):.1f} / {100 * np.median(r_pred):.1f} | {off} | {axis_off} | "
                           f"{score} |")
 
