@@ -60,11 +60,9 @@ def estimate(preds: Predictions, objects: ObjectInfo, cfg: GeometryConfig, timin
     t0 = time.perf_counter()
     parts = cfg.part_check and cloud is not None and bool(objects.part_symmetries)
     frame = range_image(cloud) if (cfg.depth_check or parts) and cloud is not None else None
-    t_check = time.perf_counter() - t0
-    t0 = time.perf_counter()
     if frame is not None and cfg.depth_check:
         dets = depth_checked(dets, frame, objects, cfg)
-    t_check += time.perf_counter() - t0
+    t_check = time.perf_counter() - t0
     if poser is not None:
         dets = nms(dets, objects.diameters, cfg.nms_fraction)
     lo = cfg.min_score if cfg.min_score_unrefined is None else cfg.min_score_unrefined

@@ -132,13 +132,16 @@ class _Checker:
         self.diameter = diameter
         self.quantile = quantile
 
+    def distances(self, points: np.ndarray, T: np.ndarray) -> np.ndarray:
+        """(N,) the distances (the mesh's units) of T(points) to the surface: points (N,3), T (4,4)."""
+        q = np.asarray(points) @ T[:3, :3].T + T[:3, 3]
+        return self.scene.compute_distance(o3d.core.Tensor(q.astype(np.float32))).numpy()
+
     def move(self, T: np.ndarray, limit: float | None = None) -> float:
         """The ``quantile`` of the distances of T(surface samples) to the surface, / diameter; once the coarse
         subset's exceeds ``limit``, that value is returned (enough to reject)."""
         for P in ((self.coarse, self.points) if limit is not None else (self.points,)):
-            q = P @ T[:3, :3].T + T[:3, 3]
-            dist = self.scene.compute_distance(o3d.core.Tensor(q.astype(np.float32))).numpy()
-            d = float(np.quantile(dist, self.quantile)) / self.diameter
+            d = float(np.quantile(self.distances(P, T), self.quantile)) / self.diameter
             if limit is not None and d > limit:
                 return d
         return d
@@ -342,10 +345,7 @@ def _worst_move(chk: _Checker, points: np.ndarray, a: np.ndarray, c: np.ndarray)
     axis by ``CONTINUOUS_ANGLES``."""
     worst = np.zeros(len(points))
     for ang in CONTINUOUS_ANGLES:
-        T = turn(a, ang, c)
-        q = points @ T[:3, :3].T + T[:3, 3]
-        d = chk.scene.compute_distance(o3d.core.Tensor(q.astype(np.float32))).numpy()
-        worst = np.maximum(worst, d / chk.diameter)
+        worst = np.maximum(worst, chk.distances(points, turn(a, ang, c)) / chk.diameter)
     return worst
 
 
@@ -367,13 +367,8 @@ def _polish_axis(chk: _Checker, body: np.ndarray, a: np.ndarray, c: np.ndarray,
 
     def cost(x: np.ndarray) -> float:
         u, o = axis_of(x)
-        total = 0.0
-        for ang in (np.pi / 2, np.pi, 3 * np.pi / 2):
-            T = turn(u, ang, o)
-            q = sample @ T[:3, :3].T + T[:3, 3]
-            total += float(np.minimum(chk.scene.compute_distance(o3d.core.Tensor(q.astype(np.float32))).numpy(),
-                                      cap).mean())
-        return total
+        return sum(float(np.minimum(chk.distances(sample, turn(u, ang, o)), cap).mean())
+                   for ang in (np.pi / 2, np.pi, 3 * np.pi / 2))
 
     res = minimize(cost, np.zeros(4), method="Nelder-Mead",
                    options={"initial_simplex": np.vstack([np.zeros(4), 0.02 * np.eye(4)]), "xatol": 1e-4,

@@ -18,8 +18,7 @@ from dataclasses import replace
 import numpy as np
 from scipy.spatial import cKDTree
 
-from detector.geometry.icp import (fit_residuals, fit_rms, icp_points, refine_pose, support_radius, surface_support,
-                                   turned_poses)
+from detector.geometry.icp import fit_residuals, fit_rms, refine_turned, support_radius, turned_poses
 
 #: Fewest frame points matched to the model's print for a turn to be scored.
 MIN_MATCHED = 30
@@ -61,7 +60,8 @@ def colour_checked(detections: list, cloud: np.ndarray, colours: np.ndarray, obj
     trimmed fit to those points (:func:`detector.geometry.icp.fit_rms`) is within ``FIT_SLACK`` x diameter of the
     best; colours are compared within twice the support distance. With ``icp``, a turned pose is refined by ICP from
     there alone, on the points ICP takes (:func:`detector.geometry.icp.refine_pose`, :func:`icp_points`; a start
-    turned half way could undo the choice), and a two-stage detection's score recomputed (its support, all points).
+    turned half way could undo the choice), and a two-stage detection's score recomputed (its support, all points):
+    :func:`detector.geometry.icp.refine_turned`.
     Adds "colour_check" seconds."""
     t0 = time.perf_counter()
     out = list(detections)
@@ -84,11 +84,9 @@ def colour_checked(detections: list, cloud: np.ndarray, colours: np.ndarray, obj
         best = int(cand[int(np.argmax(scores))])
         if best == 0:
             continue
-        R, t = Rk[best], tk[best]
+        R, t, score = Rk[best], tk[best], d.score
         if icp:
-            R, t, _, _ = refine_pose(icp_points(pts, cfg), d.obj_id, R, t, objects,
-                                     replace(cfg, icp_starts=1, icp_half_turns=False))
-        score = surface_support(pts, tree, normals, R, t, radius) if icp else d.score
+            R, t, score = refine_turned(pts, d.obj_id, R, t, objects, cfg)
         out[k] = replace(d, R=R, t=t, score=score)
     if timings is not None:
         timings["colour_check"] = timings.get("colour_check", 0.0) + time.perf_counter() - t0

@@ -204,6 +204,19 @@ def refine_pose(scene_points: np.ndarray, obj_id: int, R: np.ndarray, t: np.ndar
     return np.asarray(R, np.float64), np.asarray(t, np.float64), False, (before, after)
 
 
+def refine_turned(points: np.ndarray, obj_id: int, R: np.ndarray, t: np.ndarray, objects: ObjectInfo,
+                  cfg: GeometryConfig) -> tuple[np.ndarray, np.ndarray, float]:
+    """A detection turned to a new pose (R (3,3), t (3,) metres) by a check (the colour check, the part check),
+    refined by ICP from there alone, without its half turns (a start turned back could undo the turn), on the points
+    ICP takes of its own points (S,3) camera frame, metres (:func:`icp_points`); and its score there, the support of
+    all its points (:func:`surface_support`). Returns (R, t, score)."""
+    R, t, _, _ = refine_pose(icp_points(points, cfg), obj_id, R, t, objects,
+                             replace(cfg, icp_starts=1, icp_half_turns=False))
+    tree, normals = objects.surface(obj_id)
+    radius = support_radius(cfg.support_distance, cfg.support_floor, objects.diameters[obj_id])
+    return R, t, surface_support(points, tree, normals, R, t, radius)
+
+
 def icp_points(points: np.ndarray, cfg: GeometryConfig) -> np.ndarray:
     """The scene points (S,3) metres that ICP and its acceptance test use: at most ``cfg.icp_points`` of them, evenly
     spread over their order (all for ``cfg.icp_points`` <= 0)."""

@@ -17,7 +17,7 @@ from dataclasses import replace
 
 import numpy as np
 
-from detector.geometry.icp import icp_points, refine_pose, support_radius, surface_support, turned_poses
+from detector.geometry.icp import refine_turned, support_radius, turned_poses
 from detector.geometry.verify import RangeImage, depth_votes
 
 #: The odd part counts as in sight under a turn when the frame sees this share of its points more than it sees
@@ -72,8 +72,8 @@ def part_checked(detections: list, frame: RangeImage, cloud: np.ndarray, objects
     :class:`detector.geometry.types.GeometryConfig` (depth tolerance and free-space margin as
     :func:`detector.geometry.verify.depth_checked` takes them). ``detector.infer.estimate`` checks the poses after
     ICP and the unrefined ones after ICP has started from them. With ``icp``, a turned two-stage detection (one that
-    carries ``points``) is refined by ICP from there alone (:func:`detector.geometry.icp.refine_pose`) and rescored
-    (its support); a turn changes no score otherwise (the body, which the score sees, is the same). Adds
+    carries ``points``) is refined by ICP from there alone and rescored by its support
+    (:func:`detector.geometry.icp.refine_turned`); a turn changes no score otherwise (the body, which the score sees, is the same). Adds
     "part_check" seconds."""
     t0 = time.perf_counter()
     out = list(detections)
@@ -92,12 +92,7 @@ def part_checked(detections: list, frame: RangeImage, cloud: np.ndarray, objects
             continue
         R, t, score = Rk[best], tk[best], d.score
         if icp and d.points is not None and len(d.points):
-            pts = cloud[d.points]
-            R, t, _, _ = refine_pose(icp_points(pts, cfg), d.obj_id, R, t, objects,
-                                     replace(cfg, icp_starts=1, icp_half_turns=False))
-            tree, normals = objects.surface(d.obj_id)
-            score = surface_support(pts, tree, normals, R, t,
-                                    support_radius(cfg.support_distance, cfg.support_floor, dia))
+            R, t, score = refine_turned(cloud[d.points], d.obj_id, R, t, objects, cfg)
         out[k] = replace(d, R=R, t=t, score=score)
     if timings is not None:
         timings["part_check"] = timings.get("part_check", 0.0) + time.perf_counter() - t0
