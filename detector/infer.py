@@ -40,8 +40,8 @@ def estimate(preds: Predictions, objects: ObjectInfo, cfg: GeometryConfig, timin
     :func:`detector.geometry.voting.other_classes`), and ``features`` (M,9), the frame's points whose xyz is
     ``cloud``; its detections are suppressed again (two crops may settle on one object). With ``cfg.depth_check``
     and a cloud, a score falls where the frame's depth contradicts the pose
-    (:func:`detector.geometry.verify.depth_checked`; a two-stage detection's again after ICP, which rescored it, a
-    single network's once). ``cfg.min_score`` then drops the weak refined detections (by their score after ICP,
+    (:func:`detector.geometry.verify.depth_checked`; a two-stage detection's again after ICP, which rescored it,
+    against ``cfg.depth_consistent_refined`` where that is set; a single network's once). ``cfg.min_score`` then drops the weak refined detections (by their score after ICP,
     recomputed there for a two-stage detection) and ``cfg.min_score_unrefined`` the weak unrefined ones; an
     other-class copy below that threshold is dropped before ICP (ICP lifts right poses of the stage-1 class from
     below it, measured; the copies are many and mostly wrong). With ``cfg.colour_check`` and ``features``, an
@@ -80,7 +80,7 @@ def estimate(preds: Predictions, objects: ObjectInfo, cfg: GeometryConfig, timin
     if refined is not None and frame is not None and cfg.depth_check:  # ICP rescored the two-stage ones: again
         t0 = time.perf_counter()
         again = [k for k, d in enumerate(refined) if d.points is not None]
-        for k, d in zip(again, depth_checked([refined[k] for k in again], frame, objects, cfg)):
+        for k, d in zip(again, depth_checked([refined[k] for k in again], frame, objects, cfg, refined=True)):
             refined[k] = d
         t_check += time.perf_counter() - t0
     if frame is not None and cfg.depth_check and timings is not None:

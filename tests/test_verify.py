@@ -72,3 +72,22 @@ def test_depth_checked_keeps_consistent_scores_and_scales_the_others():
 def test_an_empty_cloud_checks_nothing():
     ri = range_image(np.zeros((0, 3)))
     assert depth_consistency(ri, box_points(SIZE), np.eye(3)[None], np.array([[0, 0, 1.0]]), 0.004, 0.008)[0] == 0
+
+
+def test_refined_poses_can_be_held_to_a_stricter_consistency():
+    cloud = frame_cloud(0.3)
+    pts = box_points(SIZE)
+    objs = ObjectInfo({1: np.zeros((9, 3))}, {1: float(np.linalg.norm(SIZE))}, {1: pts})
+    ri = range_image(cloud)
+    # a pose 4 mm beside the box: most of it on the face, an edge strip floating in front of the wall
+    det = Detection(1, 0.9, np.eye(3), np.array([0.004, 0, 0.975]), 10, np.zeros((9, 3)), np.arange(3))
+    c = depth_consistency(ri, pts, det.R[None], det.t[None], 0.008, 0.016)[0]
+    assert 0.85 <= c < 0.97
+    loose = GeometryConfig(support_distance=0.02, support_floor=0.004, depth_tolerance=2.0, depth_consistent=0.85)
+    strict = GeometryConfig(**{**vars(loose), "depth_consistent_refined": 0.97})
+    # unset: the refined poses are checked as the others; set: only the refined ones are held to it
+    assert depth_checked([det], ri, objs, loose, refined=True)[0].score == 0.9
+    assert depth_checked([det], ri, objs, strict)[0].score == 0.9
+    assert depth_checked([det], ri, objs, strict, refined=True)[0].score == pytest.approx(0.9 * c / 0.97)
+    right = Detection(1, 0.9, np.eye(3), np.array([0, 0, 0.975]), 10, np.zeros((9, 3)), np.arange(3))
+    assert depth_checked([right], ri, objs, strict, refined=True)[0].score == 0.9  # the right pose keeps its score

@@ -53,6 +53,8 @@ class GeometryConfig:
     distance (the free-space margin is twice it); depth_consistent: a detection at least this consistent keeps its
     score, a less consistent one's is scaled by consistency / depth_consistent (on a simulated LineMOD capture, 97 %
     of the right poses after ICP are at least 0.85 consistent, and 3 % of the far-wrong ones);
+    depth_consistent_refined: the same for the poses after ICP, which fit their points closer than the poses before
+    it (None: ``depth_consistent``);
     other_classes: a two-stage model also poses each stage-1 detection as every other object whose class its
     points give at least this mean probability (:func:`detector.geometry.voting.other_classes`); > 1: never;
     colour_check: turn a detection of an object whose print breaks its shape's symmetries (a printed box) to the
@@ -90,6 +92,7 @@ class GeometryConfig:
     depth_check: bool = True
     depth_tolerance: float = 2.0
     depth_consistent: float = 0.85
+    depth_consistent_refined: float | None = None
     other_classes: float = 0.1
     colour_check: bool = True
     part_check: bool = True

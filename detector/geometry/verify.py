@@ -100,17 +100,20 @@ def depth_votes(ri: RangeImage, model_points: np.ndarray, R: np.ndarray, t: np.n
     return seen, through
 
 
-def depth_checked(detections: list, frame: RangeImage, objects, cfg) -> list:
+def depth_checked(detections: list, frame: RangeImage, objects, cfg, refined: bool = False) -> list:
     """Copies of ``detections`` (:class:`detector.geometry.types.Detection`) whose scores fall with their depth
     consistency (:func:`depth_consistency`) in the frame's range image: a detection at least ``cfg.depth_consistent``
-    consistent keeps its score, one below it is scaled by consistency / ``cfg.depth_consistent``. The tolerance is
+    consistent keeps its score, one below it is scaled by consistency / ``cfg.depth_consistent``; ``refined``: the
+    poses after ICP, held to ``cfg.depth_consistent_refined`` instead where that is set. The tolerance is
     ``cfg.depth_tolerance`` times the support distance (:func:`detector.geometry.icp.support_radius` of ``cfg``), the
     free-space margin twice that. objects: the :class:`detector.geometry.types.ObjectInfo`; cfg: the
     :class:`detector.geometry.types.GeometryConfig`."""
+    need = cfg.depth_consistent_refined if refined and cfg.depth_consistent_refined is not None else \
+        cfg.depth_consistent
     cons = np.zeros(len(detections))
     for oid in {d.obj_id for d in detections}:  # each object's poses in one pass
         rows = [k for k, d in enumerate(detections) if d.obj_id == oid]
         tol = cfg.depth_tolerance * support_radius(cfg.support_distance, cfg.support_floor, objects.diameters[oid])
         cons[rows] = depth_consistency(frame, objects.model_points[oid], np.stack([detections[k].R for k in rows]),
                                        np.stack([detections[k].t for k in rows]), tol, 2 * tol)
-    return [replace(d, score=float(d.score * min(1.0, c / cfg.depth_consistent))) for d, c in zip(detections, cons)]
+    return [replace(d, score=float(d.score * min(1.0, c / need))) for d, c in zip(detections, cons)]

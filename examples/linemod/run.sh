@@ -25,13 +25,14 @@ train_beside() {
     $D train "$OUT/lm_train.h5" --out "$r" --resume --quiet
   fi
 }
-# eval_captures RUN: RUN/model.pt with ICP on both test and both validation captures, into reports/NAME-CAPTURE
-# (NAME: RUN's folder name), each report once (steps 7-8)
+# eval_captures RUN [SUFFIX EVAL OPTIONS...]: RUN/model.pt with ICP on both test and both validation captures, into
+# reports/NAME-CAPTURE (NAME: RUN's folder name, then SUFFIX), each report once (steps 7-8)
 eval_captures() {
-  local n d
-  n=$(basename "$1")
+  local r=$1 n d
+  n=$(basename "$r")${2:-}
+  shift; [ $# -gt 0 ] && shift
   for d in lm_test lchf_test lm_val lchf_val; do
-    [ -f "reports/$n-$d/report.json" ] || $D eval "$1/model.pt" "$OUT/$d.h5" --out "reports/$n-$d" --icp --quiet
+    [ -f "reports/$n-$d/report.json" ] || $D eval "$r/model.pt" "$OUT/$d.h5" --out "reports/$n-$d" --icp --quiet "$@"
   done
 }
 # false_alarms MODEL [ARGS...]: bench/false_alarms.py with ARGS on the real frames that hold none of the LineMOD
@@ -84,10 +85,14 @@ $D eval runs/lm8/model.pt "$OUT/lm_test.h5"   --out reports/lm8_test_nochecks --
 $D eval runs/lm8/model.pt "$OUT/lchf_test.h5" --out reports/lm8_lchf_nochecks --icp --quiet "${OFF[@]}"
 #    ICP as before its half-turn starts, the half turns with 30 ICP iterations, a stage-1 centre from 2 votes, stage 1
 #    sampling 1.25, 1.5 and 2 times as densely as it trained, 1.25 with a centre from 4 votes (the last five on the
-#    validation captures too) and sampling seed 1 (RESULTS.md, "ICP's half-turn starts", "Stage 1's sampling density" and the ycbv section)
+#    validation captures too), the poses after ICP held to 95 % depth consistency (on all four captures too) and
+#    sampling seed 1 (RESULTS.md, "ICP's half-turn starts", "Stage 1's sampling density", "A stricter depth check
+#    after ICP" and the ycbv section)
 G=geometry
+STRICT="$G.depth_consistent_refined=0.95"
 VARIANTS=("minvotes2:$G.min_votes=2" "density1.25:sampling.density=1.25" "density1.5:sampling.density=1.5"
-          "density2:sampling.density=2" "density1.25_minvotes4:sampling.density=1.25 $G.min_votes=4")
+          "density2:sampling.density=2" "density1.25_minvotes4:sampling.density=1.25 $G.min_votes=4"
+          "refined95:$STRICT")
 # eval_variant LABELS REPORT "KEY=VALUE ..." [EVAL OPTIONS]: runs/lm8's detector eval --icp with those --set values
 # into the folder REPORT, unless it holds a report
 eval_variant() {
@@ -141,6 +146,8 @@ for extra in "" "--set geometry.min_votes=4"; do
   false_alarms runs/lm8/model.pt --set sampling.density=1.25 $extra
   false_alarms runs/lm8/model.pt --set sampling.density=1.25 $extra --max-depth 20
 done
+#     and with the poses after ICP held to 95 % depth consistency ("A stricter depth check after ICP")
+false_alarms runs/lm8/model.pt --set "$STRICT"
 # 6c. the working volume (RESULTS.md): the test capture labelled with every point, not only those within the
 #     1.75 m of the training labels
 [ -f "$OUT/lm_test_all.h5" ] || $A label "$OUT/lm_test" --out "$OUT/lm_test_all.h5" --max-depth 20 --quiet
@@ -163,7 +170,8 @@ fi
 #    1.25 times the points and keypoints (5120 and 1280, sampled at inference as trained: "Stage 1's sampling
 #    density"; tried, not kept) and with object keypoints weighing twice the background ones in its class loss
 #    (`stage1.loss.fg_weight=2`), each scored on both test and both validation captures and on the real frames
-#    without LineMOD objects. Only with STAGE1_VARIANTS=1.
+#    without LineMOD objects; the last also with the poses after ICP held to 95 % depth consistency ("A stricter
+#    depth check after ICP"). Only with STAGE1_VARIANTS=1.
 if [ "${STAGE1_VARIANTS:-0}" = 1 ]; then
   DENSE="dense:num_points: 5120"$'\n'"  model.npoints: [1280, 256, 128, 64, 32]"
   for v in "wcls2:loss.w_cls: 2.0" "seed1:seed: 1" "$DENSE" "fg2:loss.fg_weight: 2.0"; do
@@ -173,4 +181,6 @@ if [ "${STAGE1_VARIANTS:-0}" = 1 ]; then
     false_alarms "$r/model.pt"
     false_alarms "$r/model.pt" --max-depth 20
   done
+  eval_captures runs/lm8-s1-fg2 _refined95 --set "$STRICT"
+  false_alarms runs/lm8-s1-fg2/model.pt --set "$STRICT"
 fi

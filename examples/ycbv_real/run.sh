@@ -93,10 +93,12 @@ for c in true false; do
 done
 # 6c. the sampling seed (RESULTS.md): which points stage 1 sees and stage 2's RANSAC draws, seeds 0-7, for the
 #     default inference, ICP before its half turns, a stage-1 centre from 2 votes and stage 1 sampling 1.25 times as
-#     densely as it trained, also with a centre from 4 votes (RESULTS.md, lm8's "Stage 1's sampling density"); mean
+#     densely as it trained, also with a centre from 4 votes (RESULTS.md, lm8's "Stage 1's sampling density"), and
+#     the poses after ICP held to 95 % depth consistency (RESULTS.md, lm8's "A stricter depth check after ICP"); mean
 #     and range of each
 for a in "default:" "before_half_turns:$OLD" "min_votes_2:$G.min_votes=2" "density_1.25:sampling.density=1.25" \
-         "density_1.25_min_votes_4:sampling.density=1.25 $G.min_votes=4"; do
+         "density_1.25_min_votes_4:sampling.density=1.25 $G.min_votes=4" \
+         "refined_consistent_0.95:$G.depth_consistent_refined=0.95"; do
   name=${a%%:*}; sets=()
   for kv in ${a#*:}; do sets+=(--set "$kv"); done
   for seed in 0 1 2 3 4 5 6 7; do
