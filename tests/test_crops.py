@@ -13,7 +13,7 @@ from typer.testing import CliRunner
 from argen.cli.app import app as argen_app
 from argen.h5 import LabelFile
 from argen.label import LabelConfig, LabelRequest, run_label
-from detector.stage2.network import CropNet, CropNetConfig, EdgeConv, _NeighbourMax, crop_loss
+from detector.stage2.network import CropNet, CropNetConfig, EdgeConv, _NeighbourMax, crop_loss, knn
 from detector.stage2.crops import (
     CropConfig,
     PartTurns,
@@ -314,6 +314,17 @@ def test_crop_centre_jitter_scales_with_the_diameter_and_is_clipped():
         assert np.allclose(off.std(0), 0.1 * dia, rtol=0.08)  # a larger object gets a larger centre error
         assert np.abs(off).max() <= 0.25 * dia + 1e-12
         assert np.abs(off).max() > 0.2 * dia  # the clip is reached, not far beyond the tail
+
+
+def test_knn_finds_the_same_neighbours_in_training_and_at_inference():
+    torch.manual_seed(1)
+    xyz = torch.randn(3, 40, 3)
+    idx = knn(xyz, 6)  # training: nearest first
+    d = torch.cdist(xyz, xyz)
+    assert torch.equal(idx[..., 0], torch.arange(40).expand(3, 40))  # each point is its own nearest
+    assert torch.all(d.gather(-1, idx).diff(dim=-1) >= 0)
+    with torch.no_grad():  # inference: the same sets, in an order the running maximum does not depend on
+        assert torch.equal(knn(xyz, 6).sort(-1).values, idx.sort(-1).values)
 
 
 def test_edge_convolution_equals_its_definition_per_point():
