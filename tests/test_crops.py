@@ -316,6 +316,17 @@ def test_crop_centre_jitter_scales_with_the_diameter_and_is_clipped():
         assert np.abs(off).max() > 0.2 * dia  # the clip is reached, not far beyond the tail
 
 
+def test_ball_rows_are_the_points_within_the_radius():
+    rng = np.random.default_rng(3)
+    xyz = rng.normal(size=(5000, 3)) * 0.2 + [0, 0, 1.0]
+    centre = np.array([0.05, -0.02, 1.01])
+    xyz[:40] = centre + rng.normal(size=(40, 3)) * [0, 0, 1] * 0.1  # on the centre's line of sight: dz is all of it
+    xyz[40] = centre + [0, 0, 0.1]  # exactly on the sphere
+    for radius in (0.05, 0.1, 0.3):
+        brute = np.flatnonzero(np.sum((xyz - centre) ** 2, axis=1) <= radius * radius)
+        assert np.array_equal(ball_rows(xyz, centre, radius), brute)
+
+
 def test_knn_finds_the_same_neighbours_in_training_and_at_inference():
     torch.manual_seed(1)
     xyz = torch.randn(3, 40, 3)
