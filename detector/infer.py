@@ -41,10 +41,11 @@ def estimate(preds: Predictions, objects: ObjectInfo, cfg: GeometryConfig, timin
     ``cloud``; its detections are suppressed again (two crops may settle on one object). With ``cfg.depth_check``
     and a cloud, a score falls where the frame's depth contradicts the pose
     (:func:`detector.geometry.verify.depth_checked`; a two-stage detection's again after ICP, which rescored it,
-    against ``cfg.depth_consistent_refined`` where that is set; a single network's once). ``cfg.min_score`` then drops the weak refined detections (by their score after ICP,
-    recomputed there for a two-stage detection) and ``cfg.min_score_unrefined`` the weak unrefined ones; an
-    other-class copy below that threshold is dropped before ICP (ICP lifts right poses of the stage-1 class from
-    below it, measured; the copies are many and mostly wrong). With ``cfg.colour_check`` and ``features``, an
+    against ``cfg.depth_consistent_refined`` where that is set; a single network's once). ``cfg.min_score`` then
+    drops the weak refined detections (by their score after ICP, recomputed there for a two-stage detection) and
+    ``cfg.min_score_unrefined`` the weak unrefined ones; an other-class copy below that threshold is dropped before
+    ICP (ICP lifts right poses of the stage-1 class from below it, measured; the copies are many and mostly wrong).
+    With ``cfg.colour_check`` and ``features``, an
     object whose print breaks its shape's symmetries is turned to the way round its print matches
     (:func:`detector.geometry.colour_check.colour_checked`), before and after ICP. With ``cfg.part_check`` and a
     cloud, an object with a part symmetry is turned about its axis to where the frame's depth allows its odd part
