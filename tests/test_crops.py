@@ -1112,6 +1112,49 @@ def test_pooled_crop_samples_feed_the_pose_all_their_points(labels):
     assert all(b > 1.5 * a for a, b in zip(fg_points[1], fg_points[3])), fg_points
 
 
+class NoisyCropNet(torch.nn.Module):
+    """TrueCropNet's output with seeded noise on the model coordinates (3 mm) and the foreground probabilities: a
+    crop whose pose depends on which points RANSAC draws."""
+
+    def __init__(self, true_net):
+        super().__init__()
+        self.true_net = true_net
+
+    def forward(self, features, cls):
+        out = self.true_net(features, cls)
+        g = torch.Generator().manual_seed(len(cls))
+        coords = out["coords"] + 0.03 * torch.randn(out["coords"].shape, generator=g, dtype=out["coords"].dtype)
+        logit = out["fg_logit"] + torch.randn(out["fg_logit"].shape, generator=g, dtype=out["fg_logit"].dtype)
+        return {"fg_logit": logit, "coords": coords}
+
+
+def test_crops_posed_on_threads_give_the_poses_of_one_thread(labels, monkeypatch):
+    """Stage 2 draws each crop's random choices in the crops' order and fits the poses on threads: the same poses,
+    bit for bit, as fitting them one after the other, each on its own detection."""
+    import detector.stage2.poser as poser_mod
+    from detector.stage2.poser import CropPoser, PoserConfig
+
+    cfg = CropConfig(num_points=128)
+    rng = np.random.default_rng(12)
+    with LabelFile(labels) as lf:
+        tab, objs, ids, f = busiest_frame(lf)
+        inst = f.instances
+        dets = [centre_detection(objs, int(inst.obj_id[g]), inst.control_points[g][8] + rng.normal(0, 0.01, 3))
+                for g in range(len(inst)) if inst.num_points[g] >= 150]
+        assert len(dets) >= 2
+        pcfg = PoserConfig(samples=2, fit_points=100)
+        net = NoisyCropNet(TrueCropNet(f, tab, ids, cfg))
+        threaded = CropPoser(net, ids, objs, cfg, NORMALISATION, pcfg)(dets, f.features)
+        monkeypatch.setattr(poser_mod, "map_threads", lambda fn, items: [fn(x) for x in items])
+        alone = CropPoser(net, ids, objs, cfg, NORMALISATION, pcfg)(dets, f.features)
+        assert len(threaded) == len(alone) >= 2
+        for a, b in zip(threaded, alone):
+            assert a.obj_id == b.obj_id
+            np.testing.assert_array_equal(a.R, b.R)
+            np.testing.assert_array_equal(a.t, b.t)
+            np.testing.assert_array_equal(a.points, b.points)
+
+
 def test_ransac_scored_on_a_subset_refits_on_every_correspondence():
     rng = np.random.default_rng(7)
     R, t = Rotation.random(random_state=rng).as_matrix(), np.array([0.05, 0.0, 0.7])

@@ -14,6 +14,7 @@ from detector.geometry.icp import (
     icp_refine,
     refine,
     refine_pose,
+    refine_poses,
     support_radius,
     surface_support,
     turned_poses,
@@ -435,6 +436,32 @@ def test_icp_gives_the_same_pose_every_time():
         np.testing.assert_array_equal(again[0], first[0])
         np.testing.assert_array_equal(again[1], first[1])
         assert again[3] == first[3]
+
+
+def test_icp_of_several_detections_at_once_is_each_alone():
+    """refine_poses runs the ICP starts of every detection of a frame in one thread pool: each detection's result
+    is bit for bit what refine_pose gives it alone (the results go back to their own detections)."""
+    rng = np.random.default_rng(9)
+    cps, dias, models, jobs = {}, {}, {}, []
+    for i, name in enumerate(("duck", "drill", "mug"), start=1):
+        obj, model, R, t, surf, table = resting_scene(name, rng)
+        cps[i], dias[i], models[i] = obj.control_points, obj.diameter, model
+        pts = np.concatenate([surf, table]) + rng.normal(0, 0.002, (len(surf) + len(table), 3))
+        pts = pts[rng.choice(len(pts), 256, replace=False)]
+        alts = [(Rotation.from_rotvec(rng.normal(0, 0.4, 3)).as_matrix() @ R, t + rng.normal(0, 0.01, 3))
+                for _ in range(3)]
+        jobs.append((pts, i, Rotation.from_rotvec(rng.normal(0, 0.2, 3)).as_matrix() @ R, t + rng.normal(0, 0.01, 3),
+                     alts))
+    objs = ObjectInfo(cps, dias, models)
+    cfg = GeometryConfig(icp=True, icp_iterations=20)
+    together = refine_poses(jobs, objs, cfg)
+    assert len(together) == 3
+    for job, got in zip(jobs, together):
+        alone = refine_pose(*job[:4], objs, cfg, job[4])
+        np.testing.assert_array_equal(got[0], alone[0])
+        np.testing.assert_array_equal(got[1], alone[1])
+        assert got[2:] == alone[2:]
+    assert sum(ok for _, _, ok, _ in together) >= 2  # ICP moved the perturbed poses: not a comparison of inputs
 
 
 def test_near_copies_of_a_start_are_refined_once():

@@ -6,15 +6,14 @@ Numpy and scipy; metres."""
 
 from __future__ import annotations
 
-import os
 import time
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import replace
 
 import numpy as np
 from scipy.spatial import cKDTree
 
 from detector.geometry.types import Detection, GeometryConfig, ObjectInfo, make_model_cloud
+from detector.geometry.workers import map_threads
 
 
 def icp_refine(scene_points: np.ndarray, model_points: np.ndarray, R: np.ndarray, t: np.ndarray,
@@ -34,7 +33,7 @@ def icp_refine(scene_points: np.ndarray, model_points: np.ndarray, R: np.ndarray
 
     # one thread inside each ICP: open3d's threaded sums of the normal equations add in a varying order, so the same
     # start could end a few hundredths of a millimetre apart from run to run, enough to flip which start fits best
-    # (refine_pose runs the starts side by side instead)
+    # (refine_poses runs the starts side by side instead)
     o3d.utility.set_max_threads(1)
     reg = o3d.pipelines.registration
     target = model_cloud if model_cloud is not None else make_model_cloud(model_points)
@@ -129,8 +128,6 @@ def owned_points(owners: np.ndarray, members: np.ndarray, num_predicted: int) ->
 #: are often near copies of each other: 8 starts were 5 distinct ones on average on the linemod test frames).
 SAME_START_DEG = 5.0
 SAME_START_OFFSET = 0.02
-#: Most threads for the ICP starts of one detection.
-ICP_THREADS = 4
 
 
 def distinct_poses(poses: list, diameter: float) -> list:
@@ -155,15 +152,57 @@ def turned_poses(R: np.ndarray, t: np.ndarray, turns: np.ndarray) -> tuple[np.nd
     return Rk, tk
 
 
-_POOL: list = []
+def icp_starts(obj_id: int, R: np.ndarray, t: np.ndarray, objects: ObjectInfo, cfg: GeometryConfig,
+               alternatives: list | None = None) -> list:
+    """The poses ICP starts from for one detection, [(R (3,3), t (3,) metres), ...]: its pose (R, t) first, then the
+    first ``cfg.icp_starts - 1`` of its ``alternatives`` and, with ``cfg.icp_half_turns``, (R, t) turned half way
+    about each of the object's axes, each near copy of an earlier start left out (:func:`distinct_poses`)."""
+    starts = [(R, t)] + list(alternatives or [])[:max(cfg.icp_starts - 1, 0)]
+    if cfg.icp_half_turns:  # last: of equal fits the first wins, so a turn must fit better to be kept
+        Rk, tk = turned_poses(R, t, objects.half_turns(obj_id))
+        starts += list(zip(Rk[1:], tk[1:]))
+    return distinct_poses(starts, objects.diameters[obj_id])
 
 
-def _icp_pool() -> ThreadPoolExecutor:
-    """The threads that run a detection's ICP starts side by side (open3d's ICP releases the GIL; each start's
-    result is the same as alone): as many as the CPU has cores, at most ``ICP_THREADS``."""
-    if not _POOL:
-        _POOL.append(ThreadPoolExecutor(max(1, min(ICP_THREADS, os.cpu_count() or 1)), thread_name_prefix="icp"))
-    return _POOL[0]
+def refine_poses(jobs: list, objects: ObjectInfo, cfg: GeometryConfig
+                 ) -> list[tuple[np.ndarray, np.ndarray, bool, tuple[float, float]]]:
+    """:func:`refine_pose` for several detections at once: jobs [(scene_points (S,3) camera metres, obj_id, R (3,3),
+    t (3,), alternatives or None), ...]. Every job's ICP starts (:func:`icp_starts`) run side by side in one pool,
+    so two cores stay busy across detections rather than idling at the end of each one's starts; each start's
+    result is the same as alone (one thread inside each ICP), so the results equal calling :func:`refine_pose` on
+    each job. Returns one (R, t, accepted, (RMS before, RMS after)) per job, in their order."""
+    flat = []  # (job index, start)
+    for j, (_, oid, R, t, alts) in enumerate(jobs):
+        flat += [(j, s) for s in icp_starts(oid, R, t, objects, cfg, alts)]
+
+    clouds = {oid: objects.cloud(oid) for _, oid, _, _, _ in jobs}  # built here, not raced for by the threads
+
+    def run(item):
+        j, (R0, t0) = item
+        pts, oid = jobs[j][0], jobs[j][1]
+        dia = objects.diameters[oid]
+        kernel = cfg.icp_kernel * dia if cfg.icp_kernel else None
+        return icp_refine(pts, objects.model_points[oid], R0, t0, cfg.icp_distance * dia, cfg.icp_iterations,
+                          clouds[oid], kernel)
+
+    done = map_threads(run, flat)
+    out = []
+    for j, (pts, oid, R, t, _) in enumerate(jobs):
+        results = [r for (i, _), r in zip(flat, done) if i == j]
+        dia = objects.diameters[oid]
+        tree, normals = objects.surface(oid)
+        gate = cfg.icp_gate * dia
+        before = fit_rms(fit_residuals(pts, tree, normals, R, t, gate), cfg.icp_trim)
+        res = fit_residuals(pts, tree, normals, np.stack([r[0] for r in results]),
+                            np.stack([r[1] for r in results]), gate)  # every start's result in one query
+        fits = [fit_rms(r, cfg.icp_trim) for r in res]
+        k = int(np.argmin(fits))  # the first of equal fits
+        after, (R1, t1) = fits[k], results[k]
+        if after < before - cfg.icp_min_gain * dia:
+            out.append((R1, t1, True, (before, after)))
+        else:
+            out.append((np.asarray(R, np.float64), np.asarray(t, np.float64), False, (before, after)))
+    return out
 
 
 def refine_pose(scene_points: np.ndarray, obj_id: int, R: np.ndarray, t: np.ndarray, objects: ObjectInfo,
@@ -173,35 +212,11 @@ def refine_pose(scene_points: np.ndarray, obj_id: int, R: np.ndarray, t: np.ndar
     by at least ``cfg.icp_min_gain`` of the diameter.
 
     scene_points: (S,3) camera frame, metres; R (3,3), t (3,) the initial T_cam_model; alternatives: other
-    starting poses [(R, t), ...], of which the first ``cfg.icp_starts - 1`` are also refined, and with
-    ``cfg.icp_half_turns`` (R, t) turned half way about each of the object's axes (a near copy of an
-    earlier start only once: :func:`distinct_poses`); the ICP result that fits best is the candidate. Returns R (3,3),
-    t (3,), accepted (False: the input pose, unchanged) and (RMS before, RMS after) in metres.
+    starting poses [(R, t), ...]; ICP runs from each of :func:`icp_starts` (the pose, some alternatives, its half
+    turns) and the result that fits best is the candidate. Returns R (3,3), t (3,), accepted (False: the input
+    pose, unchanged) and (RMS before, RMS after) in metres.
     """
-    dia = objects.diameters[obj_id]
-    tree, normals = objects.surface(obj_id)
-    gate = cfg.icp_gate * dia
-    before = fit_rms(fit_residuals(scene_points, tree, normals, R, t, gate), cfg.icp_trim)
-    starts = [(R, t)] + list(alternatives or [])[:max(cfg.icp_starts - 1, 0)]
-    if cfg.icp_half_turns:  # last: of equal fits the first wins, so a turn must fit better to be kept
-        Rk, tk = turned_poses(R, t, objects.half_turns(obj_id))
-        starts += list(zip(Rk[1:], tk[1:]))
-    starts = distinct_poses(starts, dia)
-    model_cloud, kernel = objects.cloud(obj_id), cfg.icp_kernel * dia if cfg.icp_kernel else None
-
-    def run(start):
-        return icp_refine(scene_points, objects.model_points[obj_id], start[0], start[1], cfg.icp_distance * dia,
-                          cfg.icp_iterations, model_cloud, kernel)
-
-    results = list(_icp_pool().map(run, starts)) if len(starts) > 1 else [run(starts[0])]
-    res = fit_residuals(scene_points, tree, normals, np.stack([r[0] for r in results]),
-                        np.stack([r[1] for r in results]), gate)  # every start's result in one query
-    fits = [fit_rms(r, cfg.icp_trim) for r in res]
-    k = int(np.argmin(fits))  # the first of equal fits, as before
-    after, (R1, t1) = fits[k], results[k]
-    if after < before - cfg.icp_min_gain * dia:
-        return R1, t1, True, (before, after)
-    return np.asarray(R, np.float64), np.asarray(t, np.float64), False, (before, after)
+    return refine_poses([(scene_points, obj_id, R, t, alternatives)], objects, cfg)[0]
 
 
 def refine_turned(points: np.ndarray, obj_id: int, R: np.ndarray, t: np.ndarray, objects: ObjectInfo,
@@ -240,18 +255,24 @@ def refine(detections: list[Detection], xyz: np.ndarray, objects: ObjectInfo, cf
     t0 = time.perf_counter()
     propagate = cloud is not None and any(d.points is None for d in detections)  # a two-stage model's carry points
     owners = nearest_owner(xyz, cloud, cfg.propagate, cfg.owner_votes) if propagate else None
-    out = []
+    points = []
     for d in detections:
         if d.points is not None and cloud is not None:
-            pts = np.asarray(cloud)[d.points]
+            points.append(np.asarray(cloud)[d.points])
         elif owners is not None:
-            pts = np.asarray(cloud)[owned_points(owners, d.members, len(xyz))]
+            points.append(np.asarray(cloud)[owned_points(owners, d.members, len(xyz))])
         else:
-            pts = xyz[d.members]
-        if len(pts) < cfg.icp_min_points:
+            points.append(xyz[d.members])
+    todo = [k for k, pts in enumerate(points) if len(pts) >= cfg.icp_min_points]
+    refined = dict(zip(todo, refine_poses([(icp_points(points[k], cfg), detections[k].obj_id, detections[k].R,
+                                             detections[k].t, detections[k].alternatives) for k in todo],
+                                           objects, cfg)))
+    out = []
+    for k, (d, pts) in enumerate(zip(detections, points)):
+        if k not in refined:
             out.append(replace(d, icp="skipped"))
             continue
-        R, t, ok, _ = refine_pose(icp_points(pts, cfg), d.obj_id, d.R, d.t, objects, cfg, d.alternatives)
+        R, t, ok, _ = refined[k]
         score = d.score
         if d.points is not None:  # a two-stage detection: its score is the support of its points, at the new pose
             tree, normals = objects.surface(d.obj_id)

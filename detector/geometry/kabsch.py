@@ -67,9 +67,24 @@ def _sq_residuals(R: np.ndarray, t: np.ndarray, m: np.ndarray, p: np.ndarray) ->
     return np.einsum("hni,hni->hn", d, d)
 
 
+def ransac_draws(n: int, hypotheses: int, rng: np.random.Generator, score_points: int | None = None
+                 ) -> tuple[np.ndarray, np.ndarray]:
+    """The random choices of :func:`ransac_kabsch` over n correspondences: the rows it scores on, sub (ns,) int64
+    (at most ``score_points`` of them, a random subset, sorted; all for None), and the three rows of each
+    hypothesis, idx (hypotheses, 3) int64 rows of the n; distinct within a hypothesis where ns < 64 (above, repeats
+    are rare and harmless). Drawn apart from the fit so that fits can run on threads with the draws of a fixed
+    order."""
+    sub = np.arange(n) if score_points is None or n <= score_points else \
+        np.sort(rng.choice(n, score_points, replace=False))
+    ns = len(sub)
+    idx = sub[np.argsort(rng.random((hypotheses, ns)), axis=1)[:, :3] if ns < 64 else
+              rng.integers(0, ns, (hypotheses, 3))]
+    return sub, idx
+
+
 def ransac_kabsch(model_pts: np.ndarray, scene_pts: np.ndarray, weights: np.ndarray, threshold: float,
-                  rng: np.random.Generator, hypotheses: int = 128, refits: int = 3, keep: int = 1,
-                  score_points: int | None = None
+                  rng: np.random.Generator | None, hypotheses: int = 128, refits: int = 3, keep: int = 1,
+                  score_points: int | None = None, draws: tuple[np.ndarray, np.ndarray] | None = None
                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray] | list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
     """A pose from noisy 3D-3D correspondences: RANSAC over 3-point Kabsch hypotheses, then weighted refits.
 
@@ -79,17 +94,15 @@ def ransac_kabsch(model_pts: np.ndarray, scene_pts: np.ndarray, weights: np.ndar
     inliers ``refits`` times (weighted Kabsch). Returns R (3,3), t (3,) float64 and the inlier mask (n,) bool;
     with ``keep`` > 1, a list of the ``keep`` best hypotheses so refitted, best first (for a verification step).
     score_points: hypotheses are drawn from, and scored on, at most this many of the correspondences (a random
-    subset; None = all); the refits use all of them. Needs n >= 3.
+    subset; None = all); the refits use all of them. draws: :func:`ransac_draws`' (sub, idx) for these n, drawn
+    before (then ``rng``, ``hypotheses`` and ``score_points`` are not used); None: drawn here from ``rng``. Needs
+    n >= 3.
     """
     m, p = np.asarray(model_pts, np.float64), np.asarray(scene_pts, np.float64)
     w = np.asarray(weights, np.float64)
     n = len(m)
-    sub = np.arange(n) if score_points is None or n <= score_points else \
-        np.sort(rng.choice(n, score_points, replace=False))
+    sub, idx = draws if draws is not None else ransac_draws(n, hypotheses, rng, score_points)
     ns = len(sub)
-    # three distinct points per hypothesis where repeats would be common; above 64 points they are rare and harmless
-    idx = sub[np.argsort(rng.random((hypotheses, ns)), axis=1)[:, :3] if ns < 64 else
-              rng.integers(0, ns, (hypotheses, 3))]
     Rh, th = kabsch_batch(m[idx], p[idx])
     inside = _sq_residuals(Rh, th, m[sub], p[sub]) < threshold * threshold  # (H, ns)
     score = inside @ w[sub]

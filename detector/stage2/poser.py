@@ -13,8 +13,9 @@ import numpy as np
 import torch
 
 from detector.geometry.icp import fit_residuals, fit_rms, support_radius, surface_support
-from detector.geometry.kabsch import ransac_kabsch
+from detector.geometry.kabsch import ransac_draws, ransac_kabsch
 from detector.geometry.types import Detection
+from detector.geometry.workers import map_threads
 from detector.stage2.crops import CropConfig, ball_rows, crop_input, sample_crop
 
 
@@ -94,26 +95,46 @@ def crop_predictions(net, features: np.ndarray, centres: np.ndarray, classes: np
     return out
 
 
+def pose_draws(num_fg: int, cfg: PoserConfig, rng: np.random.Generator, verify: bool) -> tuple | None:
+    """The random choices :func:`pose_from_crop` makes for a crop of ``num_fg`` foreground points, in its order:
+    RANSAC's (:func:`detector.geometry.kabsch.ransac_draws`) and, with ``verify``, the foreground rows the
+    verification measures the fits on, test (m,) int64 (at most ``cfg.fit_points``, a random subset, sorted).
+    Returns (sub, idx, test or None), or None where the crop has too few foreground points for a pose (nothing
+    drawn). Drawing them before the fits lets a frame's crops be posed on threads with the results of one thread."""
+    if num_fg < max(cfg.min_fg, 3):
+        return None
+    sub, idx = ransac_draws(num_fg, cfg.hypotheses, rng, cfg.fit_points)
+    if not verify:
+        return sub, idx, None
+    test = np.arange(num_fg) if num_fg <= cfg.fit_points else \
+        np.sort(rng.choice(num_fg, cfg.fit_points, replace=False))
+    return sub, idx, test
+
+
 def pose_from_crop(xyz: np.ndarray, prob: np.ndarray, model_xyz: np.ndarray, diameter: float, cfg: PoserConfig,
-                   rng: np.random.Generator, surface=None) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+                   rng: np.random.Generator | None, surface=None, draws: tuple | None = None
+                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray, list] | None:
     """A pose from one crop's predictions: xyz (n,3) camera metres, prob (n,), model_xyz (n,3) model metres.
 
     surface: (cKDTree of model points, normals) for ``cfg.verify`` > 1 (:meth:`detector.geometry.types.ObjectInfo.surface`).
-    Returns R (3,3), t (3,), the foreground (probability >= ``cfg.fg_threshold``) indices of the crop and the other
-    verified hypotheses [(R, t), ...] from the best fit to the worst (empty without verification), or None with
-    fewer than ``cfg.min_fg`` foreground points.
+    draws: :func:`pose_draws`' choices for this crop, drawn before (``rng`` is then not used); None: drawn here
+    from ``rng``. Returns R (3,3), t (3,), the foreground (probability >= ``cfg.fg_threshold``) indices of the crop
+    and the other verified hypotheses [(R, t), ...] from the best fit to the worst (empty without verification), or
+    None with fewer than ``cfg.min_fg`` foreground points.
     """
     fg = np.flatnonzero(prob >= cfg.fg_threshold)
-    if len(fg) < max(cfg.min_fg, 3):
-        return None
     keep = cfg.verify if surface is not None else 1
-    cands = ransac_kabsch(model_xyz[fg], xyz[fg], prob[fg], cfg.inlier * diameter, rng, cfg.hypotheses, keep=keep,
-                          score_points=cfg.fit_points)
+    if draws is None:
+        draws = pose_draws(len(fg), cfg, rng, keep > 1)
+    if draws is None:
+        return None
+    sub, idx, test = draws
+    cands = ransac_kabsch(model_xyz[fg], xyz[fg], prob[fg], cfg.inlier * diameter, None, keep=keep,
+                          draws=(sub, idx))
     if keep > 1:
         tree, normals = surface
-        test = fg if len(fg) <= cfg.fit_points else fg[np.sort(rng.choice(len(fg), cfg.fit_points, replace=False))]
-        res = fit_residuals(xyz[test], tree, normals, np.stack([c[0] for c in cands]), np.stack([c[1] for c in cands]),
-                            0.05 * diameter)  # (verify, n): all hypotheses in one query
+        res = fit_residuals(xyz[fg[test]], tree, normals, np.stack([c[0] for c in cands]),
+                            np.stack([c[1] for c in cands]), 0.05 * diameter)  # (verify, n): all hypotheses at once
         fits = [fit_rms(r, cfg.verify_trim) for r in res]
         order = np.argsort(fits, kind="stable")
         R, t, _ = cands[int(order[0])]
@@ -165,18 +186,27 @@ class CropPoser:
                 break
             preds = self._run(features, [centres[k] for k in todo], [dets[k].obj_id for k in todo],
                               1 if it == 0 else self.cfg.samples)
+            jobs = []  # (detection, its crop's rows, fg probability, model coordinates, surface, draws)
             for k, pred in zip(todo, preds):
                 if pred is None:
                     continue
                 rows, prob, mxyz = pred
-                oid = dets[k].obj_id
-                res = pose_from_crop(xyz[rows], prob, mxyz, self.objects.diameters[oid], self.cfg, rng,
-                                     self.objects.surface(oid) if self.cfg.verify > 1 else None)
-                if res is None:
-                    continue
+                surface = self.objects.surface(dets[k].obj_id) if self.cfg.verify > 1 else None
+                # the random choices in the crops' order here, the fits on threads: the results of one thread
+                draws = pose_draws(int(np.count_nonzero(prob >= self.cfg.fg_threshold)), self.cfg, rng,
+                                   surface is not None)
+                if draws is not None:
+                    jobs.append((k, rows, prob, mxyz, surface, draws))
+
+            def fit(job):
+                k, rows, prob, mxyz, surface, draws = job
+                return pose_from_crop(xyz[rows], prob, mxyz, self.objects.diameters[dets[k].obj_id], self.cfg, None,
+                                      surface, draws)
+
+            for (k, rows, _, _, _, _), res in zip(jobs, map_threads(fit, jobs)):
                 R, t, fg, others = res
                 results[k] = (R, t, np.unique(rows[fg]), others)
-                centres[k] = R @ self.objects.control_points[oid][8] + t
+                centres[k] = R @ self.objects.control_points[dets[k].obj_id][8] + t
         out = []
         for d, r in zip(dets, results):
             if r is None:
