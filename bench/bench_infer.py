@@ -6,6 +6,7 @@ median per stage and the median of whole frames (ICP included) over ``--frames``
 Usage: .venv/bin/python bench/bench_infer.py [--data FILE.h5] [--checkpoint CKPT] [--preset cpu paper]
                                              [--frames 5] [--device cpu|cuda] [--threads N]
                                              [--set geometry.KEY=VALUE ...] [--set sampling.density=D]
+                                             [--set infer.KEY=VALUE ...]
 
 ``--set`` changes the checkpoint's geometry and sampling settings as ``detector eval --set`` does (e.g. the
 inference without the depth check and the other classes: ``--set geometry.depth_check=false --set
@@ -80,7 +81,8 @@ def pose_times(frames: list, objects, num_points: int) -> dict[str, float]:
     return out
 
 
-def two_stage_times(ck, frames: list, device: str, sets: list[str] | None = None) -> dict[str, float]:
+def two_stage_times(ck, frames: list, device: str, sets: list[str] | None = None,
+                    infer_sets: dict | None = None) -> dict[str, float]:
     """A two-stage checkpoint end to end on real predictions: median seconds per stage and of the whole frame
     (sampling, network, voting, stage 2, ICP, depth check, colour check with the model's own geometry settings, ``sets`` over
     them), detections per frame and stage 2's crops per frame (the stage-1 detections and their other-class copies
@@ -91,7 +93,7 @@ def two_stage_times(ck, frames: list, device: str, sets: list[str] | None = None
 
     objects = checkpoint_objects(ck)[0]
     cfg = checkpoint_geometry_config(ck, None, True, sets=sets)
-    pred, poser = network_predictor(ck, seed=0, device=device), checkpoint_poser(ck, objects, device)
+    pred, poser = network_predictor(ck, seed=0, device=device), checkpoint_poser(ck, objects, device, 0, infer_sets)
     runs, dets, crops = [], [], []
 
     def counted(found, features, timings=None):
@@ -139,8 +141,8 @@ def main() -> None:
     ap.add_argument("--device", default="cpu")
     ap.add_argument("--threads", type=int, default=0, help="torch CPU threads (0: torch's default)")
     ap.add_argument("--set", dest="sets", action="append", default=[],
-                    help="a geometry or sampling setting of the checkpoint, geometry.KEY=VALUE or "
-                         "sampling.density=D (two-stage checkpoints)")
+                    help="a geometry, sampling or stage-2 inference setting of the checkpoint, "
+                         "geometry.KEY=VALUE, sampling.density=D or infer.KEY=VALUE (two-stage checkpoints)")
     args = ap.parse_args()
 
     import torch
@@ -150,7 +152,7 @@ def main() -> None:
     from detector.data.frames import object_table_dict
     from detector.geometry.types import ObjectInfo
     from detector.errors import DetectorError
-    from detector.infer import checkpoint_geometry_config, split_sets
+    from detector.infer import checkpoint_geometry_config, checkpoint_objects, checkpoint_poser, split_sets
 
     if args.threads:
         torch.set_num_threads(args.threads)
@@ -162,19 +164,22 @@ def main() -> None:
             objects = ObjectInfo.from_table(lf.objects)
         results = []
         try:
-            geometry_sets, sampling = split_sets(args.sets)
+            geometry_sets, sampling, infer_sets = split_sets(args.sets)
             if sampling and not args.checkpoint:
                 raise DetectorError("--set sampling.* needs --checkpoint (the presets' random networks sample as built)")
             ckpts = [("checkpoint", load_checkpoint(args.checkpoint, args.device, sampling))] if args.checkpoint else \
                 [(p, random_checkpoint(p, objects_dict, args.device)) for p in args.preset]
-            for _, ck in ckpts:  # a bad --set geometry.* is a one-line error before any timing
+            for _, ck in ckpts:  # a bad --set geometry.* or infer.* is a one-line error before any timing
                 if ck.stage2_net is not None:
                     checkpoint_geometry_config(ck, None, True, sets=geometry_sets)
+                    checkpoint_poser(ck, checkpoint_objects(ck)[0], args.device, 0, infer_sets)
+                elif infer_sets:
+                    raise DetectorError("--set infer.* needs a two-stage --checkpoint")
         except DetectorError as e:
             raise SystemExit(f"bench_infer.py: {e}") from None
         for name, ck in ckpts:
             if ck.stage2_net is not None:  # a two-stage model: its whole pipeline on its own predictions
-                t = two_stage_times(ck, frames, args.device, geometry_sets)
+                t = two_stage_times(ck, frames, args.device, geometry_sets, infer_sets)
                 ms = {k: round(1000 * v, 1) for k, v in t.items() if k not in ("detections", "crops")}
                 res = {"model": f"{name} (two-stage)", "device": args.device, "threads": torch.get_num_threads(),
                        "sampling": ck.sampling_used,

@@ -43,18 +43,19 @@ def main() -> None:
     ap.add_argument("--max-depth", type=float, default=None,
                     help="metres along z (default: the model's training volume, as detector predict)")
     ap.add_argument("--set", dest="sets", action="append", default=[],
-                    help="a geometry or sampling setting of the model, as detector predict --set")
+                    help="a geometry, sampling or stage-2 inference (infer.*) setting of the model, "
+                         "as detector predict --set")
     a = ap.parse_args()
     torch.set_num_threads(2)
     try:
-        sets, sampling = split_sets(a.sets)
+        sets, sampling, infer_sets = split_sets(a.sets)
         ckpt = load_checkpoint(a.ckpt, "cpu", sampling)
         cfg = checkpoint_geometry_config(ckpt, None, not a.no_icp, None, sets)
+        objects, names = checkpoint_objects(ckpt)
+        poser = checkpoint_poser(ckpt, objects, "cpu", 0, infer_sets)
     except DetectorError as e:
         raise SystemExit(f"false_alarms.py: {e}") from None
-    objects, names = checkpoint_objects(ckpt)
     predictor = network_predictor(ckpt, 0)
-    poser = checkpoint_poser(ckpt, objects, "cpu", 0)
     depth = checkpoint_max_depth(ckpt, a.max_depth)
     total = frames = 0
     with tempfile.TemporaryDirectory() as tmp:

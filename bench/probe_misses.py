@@ -90,7 +90,7 @@ def main() -> None:
     try:
         report = json.loads(Path(a.report).read_text())
         missed = missed_instances(report, a.threshold)
-        geometry, sampling = split_sets(a.sets)
+        geometry, sampling, infer_sets = split_sets(a.sets)
         ck = load_checkpoint(a.model, "cpu", sampling=sampling or None)
         if ck.stage2_net is None:
             raise DetectorError(f"{a.model} is not a two-stage model")
@@ -98,11 +98,11 @@ def main() -> None:
         loose = checkpoint_geometry_config(ck, None, True, None, geometry + ["geometry.min_score=0.0",
                                                                           "geometry.min_score_unrefined=0.0"])
         LabelFile(a.labels).close()
+        objects, _ = checkpoint_objects(ck)
+        poser = checkpoint_poser(ck, objects, "cpu", a.seed, infer_sets)
     except (OSError, ValueError, KeyError, ArgenError, DetectorError) as exc:
         sys.exit(f"probe_misses: {exc}")
     torch.set_num_threads(2)
-    objects, _ = checkpoint_objects(ck)
-    poser = checkpoint_poser(ck, objects, "cpu", a.seed)
     pred = network_predictor(ck, a.seed)
     rows, per = [], defaultdict(Counter)
     with LabelFile(a.labels) as lf:

@@ -150,22 +150,25 @@ def geometry_config(tau: float, icp: bool, base: GeometryConfig | None = None) -
     return replace(base or GeometryConfig(), tau=tau, icp=icp)
 
 
-def split_sets(sets: list[str] | None) -> tuple[list[str], dict]:
-    """eval's and predict's ``--set`` options, ``["geometry.KEY=VALUE", "sampling.KEY=VALUE", ...]``: (the geometry
-    ones, for :func:`checkpoint_geometry_config`; the sampling ones as ``{"KEY": value}``, for
-    :func:`detector.checkpoint.load_checkpoint`). Any other section is a one-line DetectorError."""
-    geometry, sampling = [], {}
+def split_sets(sets: list[str] | None) -> tuple[list[str], dict, dict]:
+    """eval's and predict's ``--set`` options, ``["geometry.KEY=VALUE", "sampling.KEY=VALUE", "infer.KEY=VALUE",
+    ...]``: (the geometry ones, for :func:`checkpoint_geometry_config`; the sampling ones as ``{"KEY": value}``, for
+    :func:`detector.checkpoint.load_checkpoint`; the infer ones, stage 2's inference settings, as ``{"KEY": value}``,
+    for :func:`checkpoint_poser`). Any other section is a one-line DetectorError."""
+    geometry, sampling, infer = [], {}, {}
     for pair in sets or []:
         (key, value), = parse_set_options([pair]).items()
         head, _, rest = key.partition(".")
         if head == "sampling" and rest:
             sampling[rest] = value
+        elif head == "infer" and rest:
+            infer[rest] = value
         elif head == "geometry" and rest:
             geometry.append(pair)
         else:
-            raise DetectorError(f"--set {key}: eval and predict take geometry and sampling settings only (--set "
-                                "geometry.KEY=VALUE, --set sampling.density=VALUE)")
-    return geometry, sampling
+            raise DetectorError(f"--set {key}: eval and predict take geometry, sampling and infer settings only "
+                                "(--set geometry.KEY=VALUE, --set sampling.density=VALUE, --set infer.KEY=VALUE)")
+    return geometry, sampling, infer
 
 
 def checkpoint_geometry_config(ckpt, tau: float | None, icp: bool, min_score: float | None = None,
@@ -191,9 +194,14 @@ def checkpoint_geometry_config(ckpt, tau: float | None, icp: bool, min_score: fl
     return geometry_config(base.tau if tau is None else tau, icp, base)
 
 
-def checkpoint_poser(ckpt, objects: ObjectInfo, device: str = "cpu", seed: int = 0):
-    """A two-stage checkpoint's stage 2 (:class:`detector.stage2.poser.CropPoser`), or None for a single network."""
+def checkpoint_poser(ckpt, objects: ObjectInfo, device: str = "cpu", seed: int = 0, sets: dict | None = None):
+    """A two-stage checkpoint's stage 2 (:class:`detector.stage2.poser.CropPoser`), or None for a single network.
+    sets: ``{"KEY": value}`` over the model's stored stage-2 inference settings (keys of
+    :class:`detector.stage2.poser.PoserConfig`, e.g. RANSAC's ``hypotheses``; ``--set infer.KEY=VALUE``); an
+    unknown key, a bad value or settings for a model without stage 2 is a one-line DetectorError."""
     if ckpt.stage2_net is None:
+        if sets:
+            raise DetectorError(f"--set infer.{next(iter(sets))}: this model has no stage 2 (a single network)")
         return None
     p = ckpt.stage2
     support = float(ckpt.geometry_config.get("support_distance", GeometryConfig.support_distance))
@@ -203,5 +211,7 @@ def checkpoint_poser(ckpt, objects: ObjectInfo, device: str = "cpu", seed: int =
         cfg = PoserConfig(**stored)
     except TypeError as exc:
         raise DetectorError(f"the checkpoint's stage-2 settings are not understood ({exc})") from None
+    if sets:
+        cfg = apply_set_options(cfg, sets, "--set infer")  # types checked; PoserConfig checks the ranges
     return CropPoser(ckpt.stage2_net, p["class_ids"], objects, CropConfig.from_dict(p["crop_config"]),
                      p["normalisation"], cfg, device, seed, support, floor)

@@ -766,9 +766,13 @@ def test_two_stage_train_resume_eval_predict(labels, tmp_path):
     for bad, word in (("geometry.depth_chek=false", "depth_check"), ("depth_check=false", "geometry.KEY"),
                       ("geometry.other_classes=abc", "number"), ("sampling.densty=2", "sampling.density"),
                       ("sampling.density=20", "[0.25, 8]"), ("sampling.density=abc", "number"),
-                      ("stage1.lr=0.1", "geometry and sampling")):
+                      ("stage1.lr=0.1", "geometry, sampling and infer"), ("infer.verfy=8", "verify"),
+                      ("infer.hypotheses=0", "at least 1")):
         r = run.invoke(det_app, ["eval", str(out / "model.pt"), str(labels), "--out", str(rep), "--set", bad])
         assert r.exit_code == 2 and word in r.stderr and len(r.stderr.strip().splitlines()) == 1, r.stderr
+    r = run.invoke(det_app, ["eval", str(out / "model.pt"), str(labels), "--out", str(rep), "--quiet", "--frames",
+                             "2", "--set", "infer.hypotheses=32", "--set", "infer.verify=4"])
+    assert r.exit_code == 0, r.output
     ds = labels.parent / "ds" / "train_pbr" / "000000" / "000001"
     r = run.invoke(det_app, ["predict", str(out / "model.pt"), str(ds), "--out", str(tmp_path / "pred"), "--icp"])
     assert r.exit_code == 0, r.output

@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+import re
 from pathlib import Path
 
 import numpy as np
@@ -26,6 +27,27 @@ def test_shipped_model_is_small_and_complete():
     assert ck.stage2_net is not None and len(ck.class_ids) == 8
     assert sorted(ck.objects["names"]) == ["ape", "can", "cat", "driller", "duck", "eggbox", "glue", "holepuncher"]
     assert 0 < ck.geometry_config["tau"] < 1
+
+
+def test_stage2_inference_settings_can_be_changed_for_a_run():
+    """``--set infer.KEY=VALUE`` (checkpoint_poser's sets) changes the named settings of the model's stored stage-2
+    inference and keeps the others; an unknown key, a value of the wrong type or out of range is a DetectorError."""
+    from dataclasses import replace
+
+    from detector.errors import DetectorError
+
+    ck = load_checkpoint(CKPT)
+    objects = checkpoint_objects(ck)[0]
+    stored = checkpoint_poser(ck, objects).cfg
+    assert stored.hypotheses == 128 and stored.samples == 3  # the model file's own
+    changed = checkpoint_poser(ck, objects, sets={"hypotheses": 64, "inlier": 0.04}).cfg
+    assert (changed.hypotheses, changed.inlier) == (64, 0.04)
+    assert replace(changed, hypotheses=stored.hypotheses, inlier=stored.inlier) == stored
+    for bad, word in (({"hypotheses": 0}, "at least 1"), ({"verify_trim": 1.5}, "(0, 1]"),
+                      ({"inlier": 0.0}, "positive"), ({"hypothesis": 64}, "did you mean 'hypotheses'"),
+                      ({"hypotheses": "many"}, "expected an integer")):
+        with pytest.raises(DetectorError, match=re.escape(word)):
+            checkpoint_poser(ck, objects, sets=bad)
 
 
 def test_shipped_model_finds_most_linemod_instances(lm_models, tmp_path):

@@ -29,12 +29,13 @@ def test_density_scales_counts_to_multiples_of_64_and_one_keeps_them():
         SamplingConfig.from_dict({"points": 8192})
 
 
-def test_split_sets_routes_geometry_and_sampling_settings():
-    assert split_sets(["geometry.tau=0.3", "sampling.density=1.5", "geometry.icp_points=[1, 2]"]) == \
-        (["geometry.tau=0.3", "geometry.icp_points=[1, 2]"], {"density": 1.5})
-    assert split_sets(None) == ([], {})
-    for bad in ("stage1.lr=1", "density=2", "sampling=2"):
-        with pytest.raises(DetectorError, match="geometry and sampling"):
+def test_split_sets_routes_geometry_sampling_and_stage2_settings():
+    assert split_sets(["geometry.tau=0.3", "sampling.density=1.5", "geometry.icp_points=[1, 2]",
+                       "infer.hypotheses=64"]) == \
+        (["geometry.tau=0.3", "geometry.icp_points=[1, 2]"], {"density": 1.5}, {"hypotheses": 64})
+    assert split_sets(None) == ([], {}, {})
+    for bad in ("stage1.lr=1", "density=2", "sampling=2", "infer=3"):
+        with pytest.raises(DetectorError, match="geometry, sampling and infer"):
             split_sets([bad])
 
 

@@ -11,6 +11,12 @@ from detector.cli.common import user_errors
 from detector.errors import DetectorError
 
 
+#: eval's and predict's --set: the model file's settings they change for one run (detector.infer.split_sets).
+SET_HELP = ("A geometry, sampling or stage-2 inference setting of the model file, e.g. --set "
+            "geometry.depth_check=false (keys of detector.geometry.types.GeometryConfig), --set sampling.density=1 "
+            "(stage 1 samples as it trained) or --set infer.hypotheses=64 (keys of detector.stage2.poser.PoserConfig).")
+
+
 def register(app: typer.Typer) -> None:
     """Add the ``eval`` and ``predict`` commands to ``app``."""
 
@@ -39,10 +45,7 @@ def register(app: typer.Typer) -> None:
                                                         "BOP19 AR (default: the one the label file names)."),
         device: str = typer.Option("cpu", "--device", help="torch device, e.g. cpu or cuda."),
         seed: int = typer.Option(0, "--seed", help="Point sampling seed."),
-        sets: list[str] = typer.Option([], "--set", help="A geometry or sampling setting of the model file, e.g. "
-                                                         "--set geometry.depth_check=false (keys of "
-                                                         "detector.geometry.types.GeometryConfig) or --set "
-                                                         "sampling.density=1 (stage 1 samples as it trained)."),
+        sets: list[str] = typer.Option([], "--set", help=SET_HELP),
         quiet: bool = typer.Option(False, "--quiet", help="No progress bar."),
     ) -> None:
         """Evaluate a checkpoint on a label file: ADD/ADD-S accuracy, F1, BOP19 AR, timings, BOP results CSV."""
@@ -58,7 +61,7 @@ def register(app: typer.Typer) -> None:
             raise DetectorError(f"--frames must be at least 1, got {frames}")
         if not 0 <= min_visib <= 1:
             raise DetectorError(f"--min-visib is a visible fraction in [0, 1], got {min_visib}")
-        sets, sampling = split_sets(sets)
+        sets, sampling, infer_sets = split_sets(sets)
         ckpt = load_checkpoint(checkpoint, device, sampling)
         cfg = checkpoint_geometry_config(ckpt, tau, icp, min_score, sets)
         with open_label_file(data) as lf:
@@ -67,7 +70,7 @@ def register(app: typer.Typer) -> None:
                 raise DetectorError(f"{data} holds no frames")
             check_label_objects(ckpt, lf.objects)
         objects = checkpoint_objects(ckpt)[0]
-        poser = checkpoint_poser(ckpt, objects, device, seed)
+        poser = checkpoint_poser(ckpt, objects, device, seed, infer_sets)
         s = evaluate(network_predictor(ckpt, seed), data, out, icp=icp, cfg=cfg, device=device,
                      frames=list(range(min(n, frames or n))), min_visib=min_visib, progress=not quiet,
                      poser=poser, method=method, dataset_name=dataset_name, bop_dataset=bop_dataset,
@@ -101,10 +104,7 @@ def register(app: typer.Typer) -> None:
         max_depth: Optional[float] = typer.Option(None, "--max-depth",
                                                   help="Use the points up to this depth, metres (default: the "
                                                        "working volume the model was trained in, when it says)."),
-        sets: list[str] = typer.Option([], "--set", help="A geometry or sampling setting of the model file, e.g. "
-                                                         "--set geometry.depth_check=false (keys of "
-                                                         "detector.geometry.types.GeometryConfig) or --set "
-                                                         "sampling.density=1 (stage 1 samples as it trained)."),
+        sets: list[str] = typer.Option([], "--set", help=SET_HELP),
     ) -> None:
         """Predict the poses in one frame: poses.json (metres) and poses.png (3D boxes)."""
         # lazy: torch and open3d load in seconds; `detector --help` and the other commands do not need them
@@ -114,7 +114,7 @@ def register(app: typer.Typer) -> None:
         from detector.predict import load_input, predict
         from detector.stage1.predictor import network_predictor
 
-        sets, sampling = split_sets(sets)
+        sets, sampling, infer_sets = split_sets(sets)
         ckpt = load_checkpoint(checkpoint, device, sampling)
         cfg = checkpoint_geometry_config(ckpt, tau, icp, min_score, sets)
         depth = checkpoint_max_depth(ckpt, max_depth)
@@ -127,7 +127,7 @@ def register(app: typer.Typer) -> None:
             typer.echo(f"detector: warning: {checkpoint.name} reads colour ({', '.join(readers)}) and {input} has "
                        f"none (give the colour image with --rgb): {cost}", err=True)
         res = predict(network_predictor(ckpt, seed), inp, objects, out, cfg, names,
-                      poser=checkpoint_poser(ckpt, objects, device, seed), max_depth=depth)
+                      poser=checkpoint_poser(ckpt, objects, device, seed, infer_sets), max_depth=depth)
         for d in res["detections"]:
             typer.echo(f"{d['name']} (obj {d['obj_id']}): score {d['score']:.2f}, t = "
                        + " ".join(f"{v:.3f}" for v in d["t"]) + " m")

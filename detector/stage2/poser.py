@@ -12,6 +12,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 import torch
 
+from detector.errors import DetectorError
 from detector.geometry.icp import fit_residuals, fit_rms, support_radius, surface_support
 from detector.geometry.kabsch import ransac_draws, ransac_kabsch
 from detector.geometry.types import Detection
@@ -43,6 +44,17 @@ class PoserConfig:
     verify: int = 16
     verify_trim: float = 0.7
     fit_points: int = 256
+
+    def __post_init__(self):
+        counts = {"hypotheses": 1, "samples": 1, "verify": 1, "recentre": 0, "min_fg": 3, "fit_points": 3}
+        for key, least in counts.items():
+            if getattr(self, key) < least:
+                raise DetectorError(f"infer.{key} must be at least {least}, got {getattr(self, key)}")
+        for key in ("fg_threshold", "verify_trim"):
+            if not 0 < getattr(self, key) <= 1:
+                raise DetectorError(f"infer.{key} is a share in (0, 1], got {getattr(self, key)}")
+        if not self.inlier > 0:
+            raise DetectorError(f"infer.inlier is a positive share of the diameter, got {self.inlier}")
 
 
 #: PoserConfig keys that model files may hold but that are gone: ``recentre_min_shift`` limited the third and
