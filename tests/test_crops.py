@@ -1117,8 +1117,8 @@ def test_pooled_crop_samples_feed_the_pose_all_their_points(labels):
 
 
 class NoisyCropNet(torch.nn.Module):
-    """TrueCropNet's output with seeded noise on the model coordinates (3 mm) and the foreground probabilities: a
-    crop whose pose depends on which points RANSAC draws."""
+    """TrueCropNet's output with seeded noise on the model coordinates (3 % of the diameter, which is what they are
+    in) and on the foreground logits: a crop whose pose depends on which points RANSAC draws."""
 
     def __init__(self, true_net):
         super().__init__()
