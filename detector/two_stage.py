@@ -1,11 +1,13 @@
-"""The default detector: two stages trained one after the other, saved as one model file.
+"""The default detector: two stages, trained side by side on a CPU, saved as one model file.
 
 Stage 1 is the paper's PointNet++ (:mod:`detector.stage1`, cpu preset) trained to segment objects and vote for
 their box centres only (``loss.centre_only``); stage 2 is the crop network (:mod:`detector.stage2`) trained on crops
 around the true centres, jittered like stage 1's centre error. A run folder holds ``stage1/`` and ``stage2/`` (each a
 resumable run of its own) and ``model.pt``: both stages' weights and the inference settings
-(:func:`detector.checkpoint.save_two_stage`), written when stage 2 ends. ``resume`` continues whichever stage is
-unfinished.
+(:func:`detector.checkpoint.save_two_stage`), written when both have ended. ``resume`` continues whichever stage is
+unfinished. On a CPU with two or more torch threads, stage 2 trains in a process of its own while stage 1 trains
+(:mod:`detector.training.threads`: the thread counts follow the steps, so the weights are those of the stages
+trained one after the other); on a GPU, one after the other.
 
 Older run folders name the stages ``detect/`` and ``pose/`` and their ``two_stage.yaml`` the geometry section
 ``pose``: they still resume (:func:`stage_dirs`, :data:`OLD_SECTIONS`).
@@ -13,10 +15,15 @@ Older run folders name the stages ``detect/`` and ``pose/`` and their ``two_stag
 
 from __future__ import annotations
 
+import multiprocessing
 import os
+import sys
+import traceback
 from dataclasses import asdict, dataclass, field, replace
+from functools import partial
 from pathlib import Path
 
+import torch
 import yaml
 
 from detector.checkpoint import SamplingConfig, save_two_stage
@@ -28,7 +35,9 @@ from detector.stage1.train import RESUME_FREE_KEYS, make_config, saved_run_setti
 from detector.stage2.poser import PoserConfig
 from detector.stage2.train import STAGE2_RESUME_FREE_KEYS, load_stage2_config, saved_settings, train_stage2
 from detector.training.checkpoint_file import read_checkpoint
+from detector.training.devices import resolve_device
 from detector.training.resume import check_resumable
+from detector.training.threads import ThreadPlan, default_narrow_steps, split_threads
 
 SECTIONS = ("stage1", "stage2", "geometry", "infer", "sampling")
 #: Older names of the sections (in run folders' two_stage.yaml and in ``--set``): ``pose`` held the geometry settings.
@@ -62,6 +71,8 @@ class TwoStageConfig:
 
         s1 = make_config("cpu", {**DEFAULTS["stage1"], **self.stage1})
         s2 = load_stage2_config(None, {**DEFAULTS["stage2"], **self.stage2})
+        if s2.narrow_steps is None:
+            s2 = replace(s2, narrow_steps=default_narrow_steps(s1.steps))
         geometry = {**DEFAULTS["geometry"], **self.geometry}
         infer = {**DEFAULTS["infer"], **self.infer}
         for name, keys, given in (("geometry", GeometryConfig.__dataclass_fields__, geometry),
@@ -104,7 +115,7 @@ def load_two_stage_config(path: str | Path | None = None, overrides: dict | None
 
 def train_two_stage(cfg: TwoStageConfig, train_path: str | Path, out_dir: str | Path, resume: bool = False,
                     progress: bool = True, val_path: str | Path | None = None,
-                    stage1_path: str | Path | None = None) -> Path:
+                    stage1_path: str | Path | None = None, side_by_side: bool = True) -> Path:
     """Train stage 1 into ``out_dir/stage1`` and stage 2 into ``out_dir/stage2`` (:func:`stage_dirs`), then write
     ``out_dir/model.pt``.
 
@@ -115,7 +126,10 @@ def train_two_stage(cfg: TwoStageConfig, train_path: str | Path, out_dir: str | 
     ``metrics.csv`` gets val_loss / val_acc every ``stage1.val_every`` steps, and ``stage1/best.pt`` keeps the
     weights of the lowest); the model file takes the last weights of each stage. stage1_path: a label file of the
     same objects for stage 1 alone (default: train_path for both), e.g. a capture without distractors while stage 2
-    learns among them (RESULTS.md, ablation row F). Returns the model file's path.
+    learns among them (RESULTS.md, ablation row F). side_by_side: on a CPU with two or more threads, train stage 2
+    in a process of its own while stage 1 trains, when both are to train (False: one after the other; the same
+    weights, :mod:`detector.training.threads`). With ``stage2.narrow_steps`` 0 the stages train one after the other,
+    each on all threads (as runs saved before that setting did). Returns the model file's path.
     """
     if int(os.environ.get("WORLD_SIZE", "1")) > 1:
         raise DetectorError("the two-stage model trains in one process (on a GPU with --device cuda); torchrun is "
@@ -140,15 +154,29 @@ def train_two_stage(cfg: TwoStageConfig, train_path: str | Path, out_dir: str | 
             check_resumable(saved_settings(saved2), s2, d2 / "last.pt", STAGE2_RESUME_FREE_KEYS)
     out_dir.mkdir(parents=True, exist_ok=True)
     (out_dir / "two_stage.yaml").write_text(yaml.safe_dump(config_to_dict(cfg), sort_keys=False))
-    if done1 is None or done1 < s1.steps:
-        if done1 is not None and not resume:
-            raise DetectorError(f"{out_dir} holds an unfinished run; add --resume to continue it")
-        train(s1, stage1_path or train_path, d1, val_path=val_path, resume=done1 is not None, progress=progress)
-    done2 = _progress(d2 / "last.pt", "stage2")[0]
-    if done2 is None or done2 < s2.steps:
-        if done2 is not None and not resume:
-            raise DetectorError(f"{out_dir} holds an unfinished run; add --resume to continue it")
-        train_stage2(s2, train_path, d2, resume=done2 is not None, progress=progress)
+    need1, need2 = done1 is None or done1 < s1.steps, done2 is None or done2 < s2.steps
+    if (need1 and done1 is not None or need2 and done2 is not None) and not resume:
+        raise DetectorError(f"{out_dir} holds an unfinished run; add --resume to continue it")
+    total = torch.get_num_threads()
+    # narrow_steps 0: the stages one after the other, each on all threads (runs saved before the setting)
+    first, narrow = split_threads(total) if s2.narrow_steps > 0 else (total, total)
+    side_by_side = side_by_side and need1 and need2 and s2.narrow_steps > 0 and total >= 2 and \
+        "cpu" == resolve_device(s1.device).type == resolve_device(s2.device).type
+    run1 = partial(train, s1, stage1_path or train_path, d1, val_path=val_path, resume=done1 is not None,
+                   progress=progress)
+    try:
+        if side_by_side:
+            _side_by_side(run1, first, s2, train_path, d2, done2 is not None, progress,
+                          ThreadPlan(s2.narrow_steps, narrow, total))
+        else:
+            if need1:
+                torch.set_num_threads(first)
+                run1()
+            if need2:
+                train_stage2(s2, train_path, d2, resume=done2 is not None, progress=progress,
+                             threads=ThreadPlan(s2.narrow_steps, narrow, total))
+    finally:
+        torch.set_num_threads(total)
     stage1 = read_checkpoint(d1 / "last.pt")
     part = read_checkpoint(d2 / "last.pt")["stage2"]
     if list(part["class_ids"]) != list(stage1["class_ids"]):
@@ -156,6 +184,64 @@ def train_two_stage(cfg: TwoStageConfig, train_path: str | Path, out_dir: str | 
     return save_two_stage(out_dir / "model.pt", stage1, {**part, "infer_config": infer},
                           {"geometry_config": geometry, "sampling_config": cfg.resolved_sampling(),
                            "train_file": str(train_path)})
+
+
+def _side_by_side(run1, threads1: int, s2, train_path: Path, d2: Path, resume2: bool, progress: bool,
+                  plan: ThreadPlan) -> None:
+    """Train stage 2 in a process of its own (on ``plan``'s threads, waiting for stage 1 at its first wide step)
+    while ``run1(before_step=...)`` trains stage 1 here on ``threads1`` torch threads
+    (:mod:`detector.training.threads`). An error in either stops both (stage 1 at its next step); stage 2's is raised
+    here as a one-line DetectorError."""
+    ctx = multiprocessing.get_context("spawn")  # a fresh interpreter: no copy of this process's torch threads
+    ended, errors = ctx.Event(), ctx.SimpleQueue()
+    child = ctx.Process(target=_stage2_process, name="detector-stage2",
+                        args=(s2, str(train_path), str(d2), resume2, progress, plan, ended, os.getpid(), errors))
+    child.start()
+
+    def failure() -> DetectorError:
+        return DetectorError(errors.get() if not errors.empty() else
+                             f"stage 2 stopped with exit code {child.exitcode}")
+
+    def stage2_alive(_step: int) -> None:  # before each stage-1 step: a failed stage 2 ends the run now
+        if child.exitcode not in (None, 0):
+            raise failure()
+
+    try:
+        torch.set_num_threads(threads1)
+        run1(before_step=stage2_alive)
+    except BaseException:
+        child.terminate()
+        child.join()
+        raise
+    ended.set()
+    child.join()
+    if child.exitcode != 0:
+        raise failure()
+
+
+def _stage2_process(s2, train_path: str, d2: str, resume: bool, progress: bool, plan: ThreadPlan, ended,
+                    parent: int, errors) -> None:
+    """Stage 2 beside stage 1 (:func:`_side_by_side`): train it, its first wide step after ``ended`` is set; a
+    DetectorError (or any other failure, as one line) goes to ``errors`` and the process exits with 2."""
+    torch.set_num_threads(plan.narrow)
+
+    def wait() -> None:  # for stage 1 to end, or for the parent to end without a word (killed)
+        while not ended.wait(timeout=2.0):
+            if os.getppid() != parent:
+                raise DetectorError("stage 2 stopped: the detector train process that started it has ended")
+
+    try:
+        train_stage2(s2, train_path, d2, resume=resume, progress=progress, bar_position=1,
+                     threads=replace(plan, wait=wait, parent=parent))
+    except KeyboardInterrupt:
+        sys.exit(130)
+    except DetectorError as exc:
+        errors.put(str(exc))
+        sys.exit(2)
+    except Exception as exc:  # noqa: BLE001 - a bug: one line for the parent, the traceback on stderr here
+        traceback.print_exc()
+        errors.put(f"stage 2 failed: {type(exc).__name__}: {exc}")
+        sys.exit(2)
 
 
 def _leaves(d: dict, prefix: str = "") -> dict:

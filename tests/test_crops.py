@@ -357,7 +357,9 @@ def test_edge_convolution_equals_its_definition_per_point():
     # a stage-2 run started when the option existed resumes: its saved settings name this network
     from detector.stage2.train import saved_settings
 
-    assert saved_settings({"net": {"k": 12, "norm_before_max": False}, "steps": 3}) == {"net": {"k": 12}, "steps": 3}
+    # (and one started before narrow_steps trained its stages one after the other: 0)
+    assert saved_settings({"net": {"k": 12, "norm_before_max": False}, "steps": 3}) == \
+        {"net": {"k": 12}, "steps": 3, "narrow_steps": 0}
     # one started before part symmetries is resumed without them; a new run has them
     assert saved_settings({"crop": {"colour": "none"}})["crop"]["part_turns"] is False
     assert CropConfig().part_turns is True
@@ -920,6 +922,95 @@ def test_stage2_killed_and_resumed_with_a_smaller_cache_equals_the_uninterrupted
     assert len(metric_rows(out)) == cfg.steps
     a, b = (read_checkpoint(d / "last.pt")["stage2"]["model_state"] for d in (tmp_path / "ref", out))
     assert all(torch.equal(a[k], b[k]) for k in a)
+
+
+def test_thread_plan_sets_the_threads_by_step_and_waits_for_stage_1_once(monkeypatch):
+    """Stage 2's threads follow its steps, not the clock: the narrow count before ``narrow_steps``, the wide one
+    from there, after one wait for stage 1 (made before the threads widen); a stage 2 whose parent is gone stops."""
+    import os
+
+    from detector.training.threads import ThreadPlan, default_narrow_steps, split_threads
+
+    assert [split_threads(n) for n in (1, 2, 3, 16)] == [(1, 1), (1, 1), (1, 2), (8, 8)]
+    assert default_narrow_steps(3000) == 5100 and default_narrow_steps(0) == 0
+    before = torch.get_num_threads()
+    waited = []
+    try:
+        plan = ThreadPlan(3, 1, 2, wait=lambda: waited.append(torch.get_num_threads()))
+        seen = []
+        for step in range(6):
+            plan.before_step(step)
+            seen.append(torch.get_num_threads())
+        assert seen == [1, 1, 1, 2, 2, 2] and waited == [1]
+        resumed = ThreadPlan(3, 1, 2, wait=lambda: waited.append("again"))
+        resumed.before_step(4)  # a run resumed past the narrow steps waits too, then widens
+        assert torch.get_num_threads() == 2 and waited == [1, "again"]
+        with pytest.raises(DetectorError, match="has ended"):
+            ThreadPlan(3, 1, 2, parent=os.getpid()).before_step(0)  # this process is not its own parent
+    finally:
+        torch.set_num_threads(before)
+
+
+def _threads_column(run) -> list[int]:
+    import csv
+
+    with open(run / "stage2" / "metrics.csv", newline="") as f:
+        return [int(r["threads"]) for r in csv.DictReader(f)]
+
+
+def test_stages_side_by_side_give_the_weights_of_one_after_the_other(labels, tmp_path):
+    """The two-stage training on a CPU: stage 2 in its own process beside stage 1 gives the weights of the stages
+    trained one after the other, bit for bit, both stages; in both runs stage 2's threads widen at the same step,
+    and side by side its first steps are taken while stage 1 still trains. An error of stage 2 beside stage 1 ends
+    the run with one line and no model file."""
+    import os
+    from dataclasses import replace
+
+    from detector.cli.app import app as det_app
+    from detector.training.checkpoint_file import read_checkpoint
+    from detector.two_stage import load_two_stage_config, train_two_stage
+
+    args = tiny_two_stage_args(120, 6)  # stage 1 long enough that stage 2 starts beside it
+    sets = dict(a.split("=", 1) for a in args[2::2])
+    sets = {k: yaml.safe_load(v) for k, v in sets.items()}
+    cfg = load_two_stage_config(None, {**sets, "stage2.narrow_steps": 3, "stage2.keep_every": 1})
+    before = torch.get_num_threads()
+    torch.set_num_threads(2)
+    try:
+        for side in (True, False):
+            train_two_stage(cfg, labels, tmp_path / str(side), progress=False, side_by_side=side)
+            assert torch.get_num_threads() == 2  # given back
+    finally:
+        torch.set_num_threads(before)
+    a, b = (read_checkpoint(tmp_path / name / "model.pt") for name in ("True", "False"))
+    for stage in ("stage1", "stage2"):
+        wa, wb = a[stage]["model_state"], b[stage]["model_state"]
+        assert all(torch.equal(wa[k], wb[k]) for k in wa), stage
+    assert _threads_column(tmp_path / "True") == _threads_column(tmp_path / "False") == [1, 1, 1, 2, 2, 2]
+    # side by side: stage 2 kept its first step before stage 1 ended, and its wide steps after
+    first, wide = (os.path.getmtime(tmp_path / "True" / "stage2" / f"step_00000{k}.pt") for k in (1, 4))
+    end1 = os.path.getmtime(tmp_path / "True" / "stage1" / "last.pt")
+    assert first < end1 <= wide
+    # narrow_steps 0 (runs saved before the setting): one stage after the other, each on all threads
+    torch.set_num_threads(2)
+    try:
+        train_two_stage(replace(cfg, stage2={**cfg.stage2, "narrow_steps": 0}), labels, tmp_path / "old",
+                        progress=False)
+    finally:
+        torch.set_num_threads(before)
+    assert _threads_column(tmp_path / "old") == [2] * 6
+    assert os.path.getmtime(tmp_path / "old" / "stage1" / "last.pt") <= \
+        os.path.getmtime(tmp_path / "old" / "stage2" / "step_000001.pt")
+    # a stage 2 that fails beside stage 1 ends stage 1 at its next step, with stage 2's error in one line
+    torch.set_num_threads(2)
+    try:
+        r = CliRunner().invoke(det_app, ["train", str(labels), "--out", str(tmp_path / "bad"),
+                                         *tiny_two_stage_args(2000, 3), "--set", "stage2.class_ids=[]"])
+    finally:
+        torch.set_num_threads(before)
+    assert r.exit_code == 2 and r.stderr.count("\n") == 1 and "no object classes" in r.stderr, r.output
+    assert not (tmp_path / "bad" / "model.pt").exists()
+    assert len((tmp_path / "bad" / "stage1" / "metrics.csv").read_text().splitlines()) - 1 < 2000
 
 
 class TrueCropNet(torch.nn.Module):

@@ -54,7 +54,8 @@ def train_cmd(
     """Train a detector on a label file; checkpoints and metrics go to --out.
 
     The default two-stage model writes --out/model.pt (both stages; the file eval and predict take) after
-    training --out/stage1 and --out/stage2; set their lengths with --set stage1.steps=N --set stage2.steps=M. --resume continues it, also with --set of settings that do not change the result
+    training --out/stage1 and --out/stage2 (side by side on a CPU; --set stage2.narrow_steps=0: one after the
+    other); set their lengths with --set stage1.steps=N --set stage2.steps=M. --resume continues it, also with --set of settings that do not change the result
     (e.g. --set stage2.cache_mb=256). --preset cpu or paper trains the paper's single network (--out/last.pt).
     """
     # lazy: torch loads in seconds; `detector --help` and the other commands do not need it

@@ -24,6 +24,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -261,22 +262,25 @@ def validation_metrics(model: torch.nn.Module, dataset: PointDataset, cfg: Train
 
 
 def train(cfg: TrainConfig, train_path: str | Path, out_dir: str | Path, val_path: str | Path | None = None,
-          resume: bool = False, progress: bool = True, stop_after: int | None = None) -> TrainSummary:
+          resume: bool = False, progress: bool = True, stop_after: int | None = None,
+          before_step: Callable[[int], None] | None = None) -> TrainSummary:
     """Train a PointNet2 on a label file; write checkpoints and metrics to ``out_dir``; return a summary.
 
     ``stop_after``: end after this step as if interrupted there (``last.pt`` is written; ``resume=True``
-    continues the same schedule), e.g. to train in time-boxed pieces. Under torchrun this joins the process
-    group (:func:`detector.training.distributed.setup`) and trains with DDP.
+    continues the same schedule), e.g. to train in time-boxed pieces. ``before_step``: called with each step's
+    0-based number before it (a two-stage run checks there that stage 2, training beside it, has not failed).
+    Under torchrun this joins the process group (:func:`detector.training.distributed.setup`) and trains with DDP.
     """
     ctx = distributed.setup(cfg.device)
     try:
-        return _train(cfg, train_path, out_dir, val_path, resume, progress, stop_after, ctx)
+        return _train(cfg, train_path, out_dir, val_path, resume, progress, stop_after, ctx, before_step)
     finally:
         distributed.teardown(ctx)
 
 
 def _train(cfg: TrainConfig, train_path: str | Path, out_dir: str | Path, val_path: str | Path | None, resume: bool,
-           progress: bool, stop_after: int | None, ctx: DistContext) -> TrainSummary:
+           progress: bool, stop_after: int | None, ctx: DistContext,
+           before_step: Callable[[int], None] | None = None) -> TrainSummary:
 
     validate_config(cfg)
     out_dir = Path(out_dir)
@@ -349,6 +353,8 @@ def _train(cfg: TrainConfig, train_path: str | Path, out_dir: str | Path, val_pa
         end = total if stop_after is None else min(total, stop_after)
         try:
             while step < end:
+                if before_step is not None:
+                    before_step(step)
                 batch = next(batches)
                 phase = "seg" if step < cfg.seg_pretrain_steps else "full"
                 lr = opt.param_groups[0]["lr"]

@@ -30,15 +30,16 @@ from detector.training.metrics_log import MetricsLog
 from detector.training.optim import optimiser_step
 from detector.training.resume import restore_state, rng_state, run_checkpoint, with_added_settings
 from detector.training.schedule import lr_factor
+from detector.training.threads import ThreadPlan
 
 
 STAGE2_KIND = "crop-pose"
 
-STAGE2_METRICS = ["step", "epoch", "loss", "fg", "coord", "fg_acc", "crops", "lr", "steps_per_s"]
+STAGE2_METRICS = ["step", "epoch", "loss", "fg", "coord", "fg_acc", "crops", "lr", "steps_per_s", "threads"]
 
 #: Settings added to Stage2TrainConfig after runs were first saved, with the value that reproduces a run saved
 #: without them (:func:`saved_settings`).
-STAGE2_ADDED_SETTINGS = {"crop.negatives": 0.0, "crop.part_turns": False}
+STAGE2_ADDED_SETTINGS = {"crop.negatives": 0.0, "crop.part_turns": False, "narrow_steps": 0}
 
 #: Stage2TrainConfig keys that may differ when resuming: they do not change the steps' numbers (``steps`` stretches
 #: or shortens the schedule from the step reached; the crop cache holds the same crops whatever its size).
@@ -53,7 +54,11 @@ class Stage2TrainConfig:
     cache_mb: the data process keeps the frames' crop regions in memory up to this many MB and cuts later epochs'
     crops from there (:class:`detector.stage2.dataset.CropDataset`; the same crops; about 0.4 MB a frame of a 30000-point label
     file of the linemod template, more with ``crop.negatives``, whose crops reach further: 1.7 times as much on the
-    ycbv template; 0 = read every frame from the file each time)."""
+    ycbv template; 0 = read every frame from the file each time); narrow_steps: the first this many steps train on
+    the threads stage 1 leaves when the stages train side by side, the later ones on all
+    (:mod:`detector.training.threads`; thread counts change a step's rounding, so this is a setting of the run;
+    None = the two-stage config sets it from stage 1's steps; 0 = the stages one after the other, each on all
+    threads, as runs saved before this setting trained)."""
 
     crop: CropConfig = field(default_factory=CropConfig)
     net: CropNetConfig = field(default_factory=CropNetConfig)
@@ -74,6 +79,7 @@ class Stage2TrainConfig:
     cache_mb: float = 2048.0
     device: str = "auto"
     seed: int = 0
+    narrow_steps: int | None = None
 
 
 def stage2_payload(net: CropNet, cfg: Stage2TrainConfig, class_ids: list[int], objects: dict, step: int,
@@ -98,11 +104,14 @@ def forward_stage2_loss(net: torch.nn.Module, batch: dict, cfg: Stage2TrainConfi
 
 
 def train_stage2(cfg: Stage2TrainConfig, train_path: str | Path, out_dir: str | Path, resume: bool = False,
-               progress: bool = True, stop_after: int | None = None, log_every: int = 0) -> dict:
+               progress: bool = True, stop_after: int | None = None, log_every: int = 0,
+               threads: ThreadPlan | None = None, bar_position: int = 0) -> dict:
     """Train the stage-2 crop network on a label file; checkpoints and metrics in ``out_dir``.
 
     stop_after: end after this step as if interrupted (``resume=True`` continues the same schedule);
-    log_every: print a progress line every this many steps (0 = a tqdm bar when ``progress``).
+    log_every: print a progress line every this many steps (0 = a tqdm bar when ``progress``);
+    threads: the torch threads of each step (:class:`detector.training.threads.ThreadPlan`; None: torch's as they
+    are); bar_position: the progress bar's line (1 below stage 1's when the stages train side by side).
     Returns {"steps", "seconds", "last" (mean of the last 20 steps' parts), "checkpoint"}.
     """
     out_dir = Path(out_dir)
@@ -140,7 +149,8 @@ def train_stage2(cfg: Stage2TrainConfig, train_path: str | Path, out_dir: str | 
                                              num_workers=cfg.num_workers, generator=loader_generator(cfg.seed),
                                              worker_init_fn=worker_init)
         batches = iter(loader)
-        bar = tqdm(total=cfg.steps, initial=start, disable=not progress or log_every > 0, desc="train stage 2")
+        bar = tqdm(total=cfg.steps, initial=start, disable=not progress or log_every > 0, desc="train stage 2",
+                   position=bar_position)
         end = cfg.steps if stop_after is None else min(cfg.steps, stop_after)
         recent: list[dict] = []
         step, t0 = start, time.perf_counter()
@@ -156,13 +166,15 @@ def train_stage2(cfg: Stage2TrainConfig, train_path: str | Path, out_dir: str | 
                         raise DetectorError(f"{train_path}: 100 batches in a row hold no usable instance")
                     continue
                 empty = 0
+                if threads is not None:
+                    threads.before_step(step)
                 lr = opt.param_groups[0]["lr"]
                 loss, parts = forward_stage2_loss(net, batch, cfg, device)
                 optimiser_step(loss, net, opt, sched, cfg.grad_clip)
                 step += 1
                 now = time.perf_counter()
                 row = {"step": step, "epoch": f"{step * cfg.batch_frames / len(ds):.4f}", **parts, "lr": lr,
-                       "steps_per_s": 1.0 / max(now - t_last, 1e-9)}
+                       "steps_per_s": 1.0 / max(now - t_last, 1e-9), "threads": torch.get_num_threads()}
                 t_last = now
                 log.write(row)
                 recent = (recent + [parts])[-20:]
@@ -213,6 +225,8 @@ def load_stage2_config(data: dict | None, overrides: dict | None = None) -> Stag
     cfg = config_from_dict(Stage2TrainConfig, d)
     if cfg.steps < 1 or cfg.batch_frames < 1 or cfg.lr <= 0 or cfg.crop.num_points < 3 or cfg.crop.radius <= 0:
         raise DetectorError("stage-2 config: steps, batch_frames, lr, crop.num_points and crop.radius must be positive")
+    if cfg.narrow_steps is not None and cfg.narrow_steps < 0:
+        raise DetectorError(f"stage-2 config: narrow_steps must be 0 or more, got {cfg.narrow_steps}")
     if cfg.cache_mb < 0:
         raise DetectorError(f"stage-2 config: cache_mb must be 0 (no cache) or more, got {cfg.cache_mb}")
     lo, hi = cfg.crop.neighbour_offset

@@ -8,7 +8,10 @@ run finished). Each snapshot is put together with the run's stage 1 and the infe
 into a model file and evaluated on LABELS (``detector eval`` with ICP; the first ``--frames`` frames). A point's
 minutes are stage 1's whole training time plus stage 2's up to the snapshot, both summed from the runs'
 ``metrics.csv`` (the seconds of every logged step, so a resumed run counts only the time it trained), or stage
-1's from ``--stage1-minutes`` where its run folder was copied without its log. The points
+1's from ``--stage1-minutes`` where its run folder was copied without its log. For a run whose stages trained side
+by side (stage 2's ``narrow_steps`` above 0: ``detector train``'s default on a CPU since 2026-12-06) they overlap, so
+a point's minutes are the later of the two: stage 1's whole time and stage 2's up to the snapshot (which counts
+its wait for stage 1). The points
 are also written to ``--out`` with ``.json`` in place of the image suffix.
 """
 
@@ -61,7 +64,9 @@ def curve_points(run: Path, labels: Path, frames: int | None, stage1_minutes: fl
                          cfg=checkpoint_geometry_config(ckpt, None, True), frames=list(range(n)),
                          poser=checkpoint_poser(ckpt, checkpoint_objects(ckpt)[0]), bop19=False,
                          min_visib=min_visib)  # ADD only
-            minutes = (stage1 + train_seconds(d2 / "metrics.csv", int(part["step"]))) / 60.0
+            upto = train_seconds(d2 / "metrics.csv", int(part["step"]))
+            beside = (part.get("train_config") or {}).get("narrow_steps") or 0
+            minutes = (max(stage1, upto) if beside > 0 else stage1 + upto) / 60.0
             points.append({"step": int(part["step"]), "minutes": round(minutes, 2),
                            "noicp": round(100 * s["mean"]["noicp"]["0.10"], 1),
                            "icp": round(100 * s["mean"]["icp"]["0.10"], 1)})
@@ -79,10 +84,10 @@ def plot(points: list[dict], stage1_minutes: float, out: Path, title: str) -> No
     x = [p["minutes"] for p in points]
     ax.plot(x, [p["icp"] for p in points], "D-", label="with ICP")
     ax.plot(x, [p["noicp"] for p in points], "s-", label="without refinement")
-    ax.axvline(stage1_minutes, color="0.6", lw=0.8, ls="-.", label="stage 1 done, stage 2 starts")
+    ax.axvline(stage1_minutes, color="0.6", lw=0.8, ls="-.", label="stage 1 done")
     ax.axhline(90, color="0.7", lw=0.8, ls="--")
     ax.axvline(60, color="0.7", lw=0.8, ls=":")
-    ax.set(xlabel="training minutes (2-core CPU, stage 1 + stage 2)", ylabel="ADD(-S) at 10 % of the diameter (%)",
+    ax.set(xlabel="training minutes (2-core CPU, both stages)", ylabel="ADD(-S) at 10 % of the diameter (%)",
            ylim=(0, 100), xlim=(0, max(65.0, max(x) + 3)), title=title)
     ax.grid(alpha=0.3)
     ax.legend(fontsize=8, loc="lower right")

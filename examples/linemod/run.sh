@@ -22,7 +22,7 @@ train_beside() {
   if [ ! -f "$r/model.pt" ]; then
     [ -d "$r/$keep" ] || { mkdir -p "$r" && cp -r "runs/lm8/$keep" "$r/"; }
     printf '%s\n' "$yaml" > "$r/two_stage.yaml"
-    $D train "$OUT/lm_train.h5" --out "$r" --resume --quiet
+    $D train "$OUT/lm_train.h5" --set stage2.narrow_steps=0 --out "$r" --resume --quiet
   fi
 }
 # eval_captures RUN [SUFFIX EVAL OPTIONS...]: RUN/model.pt with ICP on both test and both validation captures, into
@@ -67,11 +67,13 @@ done
 # 3. the default two-stage model: stage 1 (objects and their centres; colour over its frame mean, `grey_world`), then
 #    stage 2 (pose in crops);
 #    runs/lm8/model.pt holds both (checkpoints/lm8.pt is this file); stage 2 (18000 steps, the default) keeps its
-#    weights every 3000 steps for the time-to-accuracy curve
+#    weights every 3000 steps for the time-to-accuracy curve. The stages train one after the other, each on all
+#    threads (`stage2.narrow_steps=0`), as checkpoints/lm8.pt did; the default since 2026-12-06 trains them side by
+#    side, which gives other weights (step 9)
 if [ -f runs/lm8/two_stage.yaml ] && [ ! -f runs/lm8/model.pt ]; then
   $D train "$OUT/lm_train.h5" --out runs/lm8 --resume --quiet
 elif [ ! -f runs/lm8/model.pt ]; then
-  $D train "$OUT/lm_train.h5" --out runs/lm8 --set stage2.keep_every=3000 --quiet
+  $D train "$OUT/lm_train.h5" --out runs/lm8 --set stage2.keep_every=3000 --set stage2.narrow_steps=0 --quiet
 fi
 
 # 4. evaluation with the model's own thresholds: linemod test set with and without ICP, lchf test set (F1)
@@ -184,3 +186,4 @@ if [ "${STAGE1_VARIANTS:-0}" = 1 ]; then
   eval_captures runs/lm8-s1-fg2 _refined95 --set "$STRICT"
   false_alarms runs/lm8-s1-fg2/model.pt --set "$STRICT"
 fi
+

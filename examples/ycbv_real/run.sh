@@ -28,7 +28,7 @@ train_beside() {
   if [ ! -f "$r/model.pt" ]; then
     [ -d "$r/$keep" ] || { mkdir -p "$r" && cp -r "$RUN/$keep" "$r/"; }
     printf '%s\n' "$yaml" > "$r/two_stage.yaml"
-    $D train "$OUT/ycbv_train.h5" "$@" --out "$r" --resume --quiet
+    $D train "$OUT/ycbv_train.h5" "$@" --set stage2.narrow_steps=0 --out "$r" --resume --quiet
   fi
 }
 
@@ -51,11 +51,15 @@ step capture_stage1 $A "${CAPTURE[@]}" --out "$OUT/ycbv_stage1" --set clutter.co
 #    only an object's print tells apart: the colour check chooses among them; the mug's up to the turns about its body
 #    where its handle is hidden, which `argen label` found: its part symmetry) on the one with them. S2COLOUR=camera
 #    S2STEPS=8000 gives the stage 2 of runs A-K in RESULTS.md's ablation (camera-like colour changes: exposure, white
-#    balance, gamma, noise). Stage 2 keeps its weights every 2000 steps for the training-length rows
+#    balance, gamma, noise). Stage 2 keeps its weights every 2000 steps for the training-length rows. The stages
+#    train one after the other, each on all threads (`stage2.narrow_steps=0`), as checkpoints/ycbv3.pt and every run
+#    of RESULTS.md's ycbv section did. Side by side (the default since 2026-12-06) would give other weights and, by
+#    the step rates of BENCHMARKS.md, save only about 3 of this path's minutes (stage 2 is shorter than stage 1);
+#    not run
 S2COLOUR=${S2COLOUR:-none}
 S2STEPS=${S2STEPS:-4000}
 SETS=(--set stage1.colour=none --set stage1.plane_keep=0.1 --set stage2.crop.colour=$S2COLOUR
-      --set stage2.steps=$S2STEPS --set stage2.keep_every=2000)
+      --set stage2.steps=$S2STEPS --set stage2.keep_every=2000 --set stage2.narrow_steps=0)
 if [ -f "$RUN/two_stage.yaml" ] && [ ! -f "$RUN/model.pt" ]; then
   step train $D train "$OUT/ycbv_train.h5" --stage1-data "$OUT/ycbv_stage1.h5" --out "$RUN" --resume --quiet
 elif [ ! -f "$RUN/model.pt" ]; then
