@@ -187,3 +187,14 @@ if [ "${STAGE1_VARIANTS:-0}" = 1 ]; then
   false_alarms runs/lm8-s1-fg2/model.pt --set "$STRICT"
 fi
 
+# 9. the stages side by side (`detector train`'s default on a CPU since 2026-12-06), with stage 2 trained 21000 steps
+#    in the time the 18000 of step 3 took one after the other (RESULTS.md, "Tried, not kept"; BENCHMARKS.md), scored
+#    on both validation and both test captures and on the real frames without LineMOD objects. Only with
+#    SIDE_BY_SIDE=1 (about 52 minutes of training on 2 cores).
+if [ "${SIDE_BY_SIDE:-0}" = 1 ]; then
+  r=runs/lm8_sbs21
+  [ -f "$r/model.pt" ] || $D train "$OUT/lm_train.h5" --out "$r" --set stage2.steps=21000 --set stage2.keep_every=3000 \
+    --quiet $([ -f "$r/two_stage.yaml" ] && echo --resume)
+  eval_captures "$r"
+  false_alarms "$r/model.pt"
+fi
