@@ -142,6 +142,10 @@ def train_two_stage(cfg: TwoStageConfig, train_path: str | Path, out_dir: str | 
     done1, saved1 = _progress(d1 / "last.pt", "stage1")
     done2, saved2 = _progress(d2 / "last.pt", "stage2")
     saved1 = saved_run_settings(saved1) if saved1 is not None else None
+    if resume and saved1 is not None and saved2 is None and "narrow_steps" not in cfg.stage2:
+        # a run started before stage2.narrow_steps (new runs name it in two_stage.yaml, below), stopped in stage 1:
+        # its stages train one after the other, each on all threads, as it started
+        cfg = replace(cfg, stage2={**cfg.stage2, "narrow_steps": 0})
     if resume:  # a run keeps the settings it started with where its two_stage.yaml and --set name none
         cfg = replace(cfg, stage1=run_settings(saved1, s1, cfg.stage1, RESUME_FREE_KEYS),
                       stage2=run_settings(saved_settings(saved2) if saved2 is not None else None, s2, cfg.stage2,
@@ -152,16 +156,18 @@ def train_two_stage(cfg: TwoStageConfig, train_path: str | Path, out_dir: str | 
             check_resumable(saved1, s1, d1 / "last.pt", RESUME_FREE_KEYS)
         if saved2 is not None:
             check_resumable(saved_settings(saved2), s2, d2 / "last.pt", STAGE2_RESUME_FREE_KEYS)
+    if "narrow_steps" not in cfg.stage2:  # named, so that a resumed run knows it started with the setting
+        cfg = replace(cfg, stage2={**cfg.stage2, "narrow_steps": s2.narrow_steps})
     out_dir.mkdir(parents=True, exist_ok=True)
     (out_dir / "two_stage.yaml").write_text(yaml.safe_dump(config_to_dict(cfg), sort_keys=False))
     need1, need2 = done1 is None or done1 < s1.steps, done2 is None or done2 < s2.steps
     if (need1 and done1 is not None or need2 and done2 is not None) and not resume:
         raise DetectorError(f"{out_dir} holds an unfinished run; add --resume to continue it")
     total = torch.get_num_threads()
-    # narrow_steps 0: the stages one after the other, each on all threads (runs saved before the setting)
-    first, narrow = split_threads(total) if s2.narrow_steps > 0 else (total, total)
-    side_by_side = side_by_side and need1 and need2 and s2.narrow_steps > 0 and total >= 2 and \
-        "cpu" == resolve_device(s1.device).type == resolve_device(s2.device).type
+    # narrow_steps 0 (runs saved before the setting) or a GPU: the stages one after the other, each on all threads
+    shared = s2.narrow_steps > 0 and "cpu" == resolve_device(s1.device).type == resolve_device(s2.device).type
+    first, narrow = split_threads(total) if shared else (total, total)
+    side_by_side = side_by_side and shared and need1 and need2 and total >= 2
     run1 = partial(train, s1, stage1_path or train_path, d1, val_path=val_path, resume=done1 is not None,
                    progress=progress)
     try:
@@ -202,6 +208,7 @@ def _side_by_side(run1, threads1: int, s2, train_path: Path, d2: Path, resume2: 
         return DetectorError(errors.get() if not errors.empty() else
                              f"stage 2 stopped with exit code {child.exitcode}")
 
+
     def stage2_alive(_step: int) -> None:  # before each stage-1 step: a failed stage 2 ends the run now
         if child.exitcode not in (None, 0):
             raise failure()
@@ -235,12 +242,12 @@ def _stage2_process(s2, train_path: str, d2: str, resume: bool, progress: bool, 
                      threads=replace(plan, wait=wait, parent=parent))
     except KeyboardInterrupt:
         sys.exit(130)
-    except DetectorError as exc:
-        errors.put(str(exc))
+    except DetectorError as exc:  # one line, and short: the pipe must take it before the parent reads it
+        errors.put(str(exc).splitlines()[0][:2000] if str(exc) else "stage 2 failed")
         sys.exit(2)
     except Exception as exc:  # noqa: BLE001 - a bug: one line for the parent, the traceback on stderr here
         traceback.print_exc()
-        errors.put(f"stage 2 failed: {type(exc).__name__}: {exc}")
+        errors.put(f"stage 2 failed: {type(exc).__name__}: {str(exc)[:2000]}".splitlines()[0])
         sys.exit(2)
 
 

@@ -973,7 +973,8 @@ def test_stages_side_by_side_give_the_weights_of_one_after_the_other(labels, tmp
     args = tiny_two_stage_args(120, 6)  # stage 1 long enough that stage 2 starts beside it
     sets = dict(a.split("=", 1) for a in args[2::2])
     sets = {k: yaml.safe_load(v) for k, v in sets.items()}
-    cfg = load_two_stage_config(None, {**sets, "stage2.narrow_steps": 3, "stage2.keep_every": 1})
+    cfg = load_two_stage_config(None, {**sets, "stage2.narrow_steps": 3, "stage2.keep_every": 1,
+                                       "stage1.device": "cpu", "stage2.device": "cpu"})  # side by side: on a CPU
     before = torch.get_num_threads()
     torch.set_num_threads(2)
     try:
@@ -999,13 +1000,32 @@ def test_stages_side_by_side_give_the_weights_of_one_after_the_other(labels, tmp
     finally:
         torch.set_num_threads(before)
     assert _threads_column(tmp_path / "old") == [2] * 6
+    assert yaml.safe_load((tmp_path / "True" / "two_stage.yaml").read_text())["stage2"]["narrow_steps"] == 3
+    # a run started before the setting (its two_stage.yaml without it) and stopped after stage 1 resumes as it
+    # started: stage 2 on all threads; so does one that names it 0
+    import shutil
+
+    from detector.config import config_to_dict
+
+    old = tmp_path / "older"
+    shutil.copytree(tmp_path / "old" / "stage1", old / "stage1")
+    saved = config_to_dict(cfg)
+    del saved["stage2"]["narrow_steps"]
+    (old / "two_stage.yaml").write_text(yaml.safe_dump(saved))
+    torch.set_num_threads(2)
+    try:
+        train_two_stage(load_two_stage_config(old / "two_stage.yaml"), labels, old, resume=True, progress=False)
+    finally:
+        torch.set_num_threads(before)
+    assert _threads_column(old) == [2] * 6
     assert os.path.getmtime(tmp_path / "old" / "stage1" / "last.pt") <= \
         os.path.getmtime(tmp_path / "old" / "stage2" / "step_000001.pt")
     # a stage 2 that fails beside stage 1 ends stage 1 at its next step, with stage 2's error in one line
     torch.set_num_threads(2)
     try:
         r = CliRunner().invoke(det_app, ["train", str(labels), "--out", str(tmp_path / "bad"),
-                                         *tiny_two_stage_args(2000, 3), "--set", "stage2.class_ids=[]"])
+                                         *tiny_two_stage_args(2000, 3), "--set", "stage2.class_ids=[]",
+                                         "--device", "cpu"])
     finally:
         torch.set_num_threads(before)
     assert r.exit_code == 2 and r.stderr.count("\n") == 1 and "no object classes" in r.stderr, r.output

@@ -159,6 +159,8 @@ def train_stage2(cfg: Stage2TrainConfig, train_path: str | Path, out_dir: str | 
         empty = 0
         try:
             while step < end:
+                if threads is not None:  # before the batch too (with no loader process it is made here)
+                    threads.before_step(step)
                 batch = next(batches)
                 if len(batch["cls"]) == 0:  # frames without a usable instance: no step (resume sees the same)
                     empty += 1
@@ -166,8 +168,6 @@ def train_stage2(cfg: Stage2TrainConfig, train_path: str | Path, out_dir: str | 
                         raise DetectorError(f"{train_path}: 100 batches in a row hold no usable instance")
                     continue
                 empty = 0
-                if threads is not None:
-                    threads.before_step(step)
                 lr = opt.param_groups[0]["lr"]
                 loss, parts = forward_stage2_loss(net, batch, cfg, device)
                 optimiser_step(loss, net, opt, sched, cfg.grad_clip)

@@ -9,9 +9,10 @@ into a model file and evaluated on LABELS (``detector eval`` with ICP; the first
 minutes are stage 1's whole training time plus stage 2's up to the snapshot, both summed from the runs'
 ``metrics.csv`` (the seconds of every logged step, so a resumed run counts only the time it trained), or stage
 1's from ``--stage1-minutes`` where its run folder was copied without its log. For a run whose stages trained side
-by side (stage 2's ``narrow_steps`` above 0: ``detector train``'s default on a CPU since 2026-12-06) they overlap, so
-a point's minutes are the later of the two: stage 1's whole time and stage 2's up to the snapshot (which counts
-its wait for stage 1). The points
+by side (``detector train``'s default on a CPU since 2026-12-06: stage 2's ``narrow_steps`` above 0 and its
+``metrics.csv`` showing fewer threads for those steps; a run resumed in stage 2 after stage 1 ended is taken for one
+too) they overlap, so a point's minutes are the later of the two: stage 1's whole time and stage 2's up to the
+snapshot (which counts its wait for stage 1). The points
 are also written to ``--out`` with ``.json`` in place of the image suffix.
 """
 
@@ -29,6 +30,14 @@ def train_seconds(metrics: Path, upto: int | None = None) -> float:
     with open(metrics, newline="") as f:
         return sum(1.0 / float(r["steps_per_s"]) for r in csv.DictReader(f)
                    if (upto is None or int(r["step"]) <= upto) and float(r["steps_per_s"]) > 0)
+
+
+def side_by_side(stage2_dir: Path) -> bool:
+    """Whether a stage-2 run's ``metrics.csv`` shows steps on fewer threads than others (the steps it took beside
+    stage 1); runs without a threads column (before 2026-12-06) trained after stage 1."""
+    with open(stage2_dir / "metrics.csv", newline="") as f:
+        counts = {int(r["threads"]) for r in csv.DictReader(f) if r.get("threads")}
+    return len(counts) > 1
 
 
 def curve_points(run: Path, labels: Path, frames: int | None, stage1_minutes: float,
@@ -65,8 +74,8 @@ def curve_points(run: Path, labels: Path, frames: int | None, stage1_minutes: fl
                          poser=checkpoint_poser(ckpt, checkpoint_objects(ckpt)[0]), bop19=False,
                          min_visib=min_visib)  # ADD only
             upto = train_seconds(d2 / "metrics.csv", int(part["step"]))
-            beside = (part.get("train_config") or {}).get("narrow_steps") or 0
-            minutes = (max(stage1, upto) if beside > 0 else stage1 + upto) / 60.0
+            narrow = (part.get("train_config") or {}).get("narrow_steps") or 0
+            minutes = (max(stage1, upto) if narrow > 0 and side_by_side(d2) else stage1 + upto) / 60.0
             points.append({"step": int(part["step"]), "minutes": round(minutes, 2),
                            "noicp": round(100 * s["mean"]["noicp"]["0.10"], 1),
                            "icp": round(100 * s["mean"]["icp"]["0.10"], 1)})
