@@ -37,7 +37,7 @@ from detector.stage2.train import STAGE2_RESUME_FREE_KEYS, load_stage2_config, s
 from detector.training.checkpoint_file import read_checkpoint
 from detector.training.devices import resolve_device
 from detector.training.resume import check_resumable
-from detector.training.threads import ThreadPlan, default_narrow_steps, split_threads
+from detector.training.threads import ThreadPlan, check_parent, default_narrow_steps, split_threads
 
 SECTIONS = ("stage1", "stage2", "geometry", "infer", "sampling")
 #: Older names of the sections (in run folders' two_stage.yaml and in ``--set``): ``pose`` held the geometry settings.
@@ -170,17 +170,16 @@ def train_two_stage(cfg: TwoStageConfig, train_path: str | Path, out_dir: str | 
     side_by_side = side_by_side and shared and need1 and need2 and total >= 2
     run1 = partial(train, s1, stage1_path or train_path, d1, val_path=val_path, resume=done1 is not None,
                    progress=progress)
+    plan = ThreadPlan(s2.narrow_steps, narrow, total)
     try:
         if side_by_side:
-            _side_by_side(run1, first, s2, train_path, d2, done2 is not None, progress,
-                          ThreadPlan(s2.narrow_steps, narrow, total))
+            _side_by_side(run1, first, s2, train_path, d2, done2 is not None, progress, plan)
         else:
             if need1:
                 torch.set_num_threads(first)
                 run1()
             if need2:
-                train_stage2(s2, train_path, d2, resume=done2 is not None, progress=progress,
-                             threads=ThreadPlan(s2.narrow_steps, narrow, total))
+                train_stage2(s2, train_path, d2, resume=done2 is not None, progress=progress, threads=plan)
     finally:
         torch.set_num_threads(total)
     stage1 = read_checkpoint(d1 / "last.pt")
@@ -208,7 +207,6 @@ def _side_by_side(run1, threads1: int, s2, train_path: Path, d2: Path, resume2: 
         return DetectorError(errors.get() if not errors.empty() else
                              f"stage 2 stopped with exit code {child.exitcode}")
 
-
     def stage2_alive(_step: int) -> None:  # before each stage-1 step: a failed stage 2 ends the run now
         if child.exitcode not in (None, 0):
             raise failure()
@@ -234,8 +232,7 @@ def _stage2_process(s2, train_path: str, d2: str, resume: bool, progress: bool, 
 
     def wait() -> None:  # for stage 1 to end, or for the parent to end without a word (killed)
         while not ended.wait(timeout=2.0):
-            if os.getppid() != parent:
-                raise DetectorError("stage 2 stopped: the detector train process that started it has ended")
+            check_parent(parent)
 
     try:
         train_stage2(s2, train_path, d2, resume=resume, progress=progress, bar_position=1,

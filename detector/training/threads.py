@@ -38,6 +38,13 @@ def default_narrow_steps(stage1_steps: int) -> int:
     return int(round(STAGE2_STEPS_PER_STAGE1_STEP * stage1_steps))
 
 
+def check_parent(parent: int | None) -> None:
+    """Raise a DetectorError when this process's parent is no longer ``parent`` (None: no check): a stage 2 whose
+    ``detector train`` process has ended (killed) stops instead of training on alone."""
+    if parent is not None and os.getppid() != parent:
+        raise DetectorError("stage 2 stopped: the detector train process that started it has ended")
+
+
 @dataclass
 class ThreadPlan:
     """Stage 2's torch threads by step: ``narrow`` before step ``narrow_steps`` (0-based), ``wide`` from there.
@@ -59,8 +66,7 @@ class ThreadPlan:
 
     def before_step(self, step: int) -> None:
         """Set torch's threads for 0-based step ``step``, waiting for stage 1 before the first wide one."""
-        if self.parent is not None and os.getppid() != self.parent:
-            raise DetectorError("stage 2 stopped: the detector train process that started it has ended")
+        check_parent(self.parent)
         if step >= self.narrow_steps and self.wait is not None:
             self.wait()
             self.wait = None

@@ -9,9 +9,8 @@ into a model file and evaluated on LABELS (``detector eval`` with ICP; the first
 minutes are stage 1's whole training time plus stage 2's up to the snapshot, both summed from the runs'
 ``metrics.csv`` (the seconds of every logged step, so a resumed run counts only the time it trained), or stage
 1's from ``--stage1-minutes`` where its run folder was copied without its log. For a run whose stages trained side
-by side (``detector train``'s default on a CPU since 2026-12-06: stage 2's ``narrow_steps`` above 0 and its
-``metrics.csv`` showing fewer threads for those steps; a run resumed in stage 2 after stage 1 ended is taken for one
-too) they overlap, so a point's minutes are the later of the two: stage 1's whole time and stage 2's up to the
+by side (``detector train``'s default on a CPU since 2026-12-06: stage 2's ``metrics.csv`` shows fewer threads for
+its first steps; a run resumed in stage 2 after stage 1 ended is taken for one too) they overlap, so a point's minutes are the later of the two: stage 1's whole time and stage 2's up to the
 snapshot (which counts its wait for stage 1). The points
 are also written to ``--out`` with ``.json`` in place of the image suffix.
 """
@@ -57,6 +56,7 @@ def curve_points(run: Path, labels: Path, frames: int | None, stage1_minutes: fl
     stage1_part = read_checkpoint(d1 / "last.pt")
     stage1 = 60.0 * stage1_minutes
     snaps = sorted(d2.glob("step_*.pt")) + [d2 / "last.pt"]
+    beside = side_by_side(d2)
     with open_label_file(labels) as lf:
         n = lf.num_frames if frames is None else min(frames, lf.num_frames)
     points, seen = [], set()
@@ -74,8 +74,7 @@ def curve_points(run: Path, labels: Path, frames: int | None, stage1_minutes: fl
                          poser=checkpoint_poser(ckpt, checkpoint_objects(ckpt)[0]), bop19=False,
                          min_visib=min_visib)  # ADD only
             upto = train_seconds(d2 / "metrics.csv", int(part["step"]))
-            narrow = (part.get("train_config") or {}).get("narrow_steps") or 0
-            minutes = (max(stage1, upto) if narrow > 0 and side_by_side(d2) else stage1 + upto) / 60.0
+            minutes = (max(stage1, upto) if beside else stage1 + upto) / 60.0
             points.append({"step": int(part["step"]), "minutes": round(minutes, 2),
                            "noicp": round(100 * s["mean"]["noicp"]["0.10"], 1),
                            "icp": round(100 * s["mean"]["icp"]["0.10"], 1)})
