@@ -376,6 +376,75 @@ def test_roll_about_the_ray_keeps_the_centre_and_model_coordinates():
     assert np.allclose(model_coordinates(q, Q @ R, Q @ (t - t) + t, 1.0), x, atol=1e-6)
 
 
+def test_a_rolled_crop_input_is_the_crop_of_the_rolled_points():
+    """roll_crop_input turns a crop's positions and normals as roll_about_ray turns the frame's points (training's
+    roll), and keeps its colours."""
+    from detector.stage2.crops import roll_crop_input
+
+    rng = np.random.default_rng(3)
+    c, radius = np.array([0.08, -0.03, 0.85]), 0.07
+    feats = np.zeros((300, 9), np.float32)
+    feats[:, :3] = c + rng.normal(0, 0.03, (300, 3))
+    feats[:, 3:6] = rng.random((300, 3))
+    n = rng.normal(size=(300, 3))
+    feats[:, 6:9] = n / np.linalg.norm(n, axis=1, keepdims=True)
+    rows = np.arange(0, 300, 2)
+    inp = crop_input(feats, rows, c, radius, NORMALISATION)
+    assert roll_crop_input(inp, c, 0.0) is inp
+    q, Q = roll_about_ray(feats[:, :3].astype(np.float64), c, 0.3)
+    turned = feats.copy()
+    turned[:, :3] = q
+    turned[:, 6:9] = feats[:, 6:9] @ Q.T
+    rolled = roll_crop_input(inp, c, 0.3)
+    np.testing.assert_allclose(rolled, crop_input(turned, rows, c, radius, NORMALISATION), atol=1e-5)
+    np.testing.assert_array_equal(rolled[:, 3:6], inp[:, 3:6])
+    assert not np.allclose(rolled[:, :3], inp[:, :3], atol=1e-3)
+
+
+def test_crop_subsets_are_rolled_apart_and_keep_their_points(monkeypatch):
+    """With infer.roll_deg, subset k of a crop reaches the network rolled by the k-th of angles spread evenly over
+    [-roll_deg, roll_deg], the same points as without the roll; the predictions come back paired with the points'
+    own rows (the model coordinates do not depend on the roll)."""
+    from detector.stage2.crops import roll_crop_input
+    from detector.stage2.poser import PoserConfig, crop_predictions, subset_rolls
+
+    np.testing.assert_allclose(subset_rolls(3, 10.0), np.deg2rad([-10.0, 0.0, 10.0]))
+    assert np.array_equal(subset_rolls(1, 10.0), [0.0]) and np.array_equal(subset_rolls(4, 0.0), np.zeros(4))
+    with pytest.raises(DetectorError, match="roll_deg"):
+        PoserConfig(roll_deg=120)
+
+    class Recorder(torch.nn.Module):  # echoes each point's input position as its "model coordinates"
+        def __init__(self):
+            super().__init__()
+            self.seen = []
+
+        def forward(self, features, cls):
+            self.seen.append(features.clone())
+            return {"fg_logit": torch.zeros(features.shape[:2]), "coords": features[..., :3].clone()}
+
+    rng = np.random.default_rng(9)
+    c, dia = np.array([0.02, 0.05, 0.9]), 0.1
+    feats = np.zeros((3000, 9), np.float32)
+    feats[:, :3] = c + rng.normal(0, 0.03, (3000, 3))
+    feats[:, 6:9] = [0.0, 0.0, -1.0]
+    cfg = CropConfig(num_points=128)
+    runs = {}
+    for roll in (0.0, 12.0):
+        net = Recorder()
+        out = crop_predictions(net, feats, c[None], np.array([0]), np.array([dia]), cfg, NORMALISATION, seed=4,
+                               samples=3, roll_deg=roll)
+        runs[roll] = (net.seen[0], out[0])
+    (plain, (rows0, _, _)), (rolled, (rows1, _, coords1)) = runs[0.0], runs[12.0]
+    assert np.array_equal(rows0, rows1)
+    for k, angle in enumerate(subset_rolls(3, 12.0)):
+        np.testing.assert_allclose(rolled[k].numpy(), roll_crop_input(plain[k].numpy(), c, angle), atol=1e-6)
+    # the echoed (rolled) positions come back beside the rows they were cut from: subset 0 turned by -12 degrees
+    sub0 = rows1[:128]
+    back = (feats[sub0, :3] - c) / (cfg.radius * dia)
+    Q = roll_about_ray(np.zeros((0, 3)), c, np.deg2rad(-12.0))[1]
+    np.testing.assert_allclose(coords1[:128] / dia, back @ Q.T, atol=1e-5)
+
+
 def test_ransac_kabsch_recovers_a_pose_with_half_outliers():
     rng = np.random.default_rng(2)
     for _ in range(5):

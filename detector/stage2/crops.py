@@ -257,6 +257,19 @@ def roll_about_ray(points: np.ndarray, centre: np.ndarray, angle: float) -> tupl
     return (np.asarray(points, np.float64) - centre) @ Q.T + centre, Q
 
 
+def roll_crop_input(feats: np.ndarray, centre: np.ndarray, angle: float) -> np.ndarray:
+    """A crop's network input (n,9) (:func:`crop_input`, centred on ``centre`` (3,) metres) rolled about the camera
+    ray through ``centre`` by ``angle`` radians, as :func:`roll_about_ray` rolls the points: positions and normals
+    turned, colours kept. Returns a new array; the input itself for angle 0."""
+    if angle == 0:
+        return feats
+    Q = roll_about_ray(np.zeros((0, 3)), centre, angle)[1].astype(np.float32)
+    out = np.array(feats, dtype=np.float32, copy=True)
+    out[:, :3] = out[:, :3] @ Q.T
+    out[:, 6:9] = out[:, 6:9] @ Q.T
+    return out
+
+
 def add_neighbour(own_xyz: np.ndarray, own_feats: np.ndarray, centre: np.ndarray, diameter: float,
                   offset: tuple[float, float], rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
     """A second instance of an object beside it, made of the object's own points: own_xyz (m,3) metres and

@@ -17,7 +17,7 @@ from detector.geometry.icp import fit_residuals, fit_rms, support_radius, surfac
 from detector.geometry.kabsch import ransac_draws, ransac_kabsch
 from detector.geometry.types import Detection
 from detector.geometry.workers import map_threads
-from detector.stage2.crops import CropConfig, ball_rows, crop_input, sample_crop
+from detector.stage2.crops import CropConfig, ball_rows, crop_input, roll_crop_input, sample_crop
 
 
 @dataclass
@@ -44,6 +44,7 @@ class PoserConfig:
     verify: int = 16
     verify_trim: float = 0.7
     fit_points: int = 256
+    roll_deg: float = 0.0
 
     def __post_init__(self):
         counts = {"hypotheses": 1, "samples": 1, "verify": 1, "recentre": 0, "min_fg": 3, "fit_points": 3}
@@ -55,6 +56,8 @@ class PoserConfig:
                 raise DetectorError(f"infer.{key} is a share in (0, 1], got {getattr(self, key)}")
         if not self.inlier > 0:
             raise DetectorError(f"infer.inlier is a positive share of the diameter, got {self.inlier}")
+        if not 0 <= self.roll_deg <= 90:
+            raise DetectorError(f"infer.roll_deg is in degrees within [0, 90], got {self.roll_deg}")
 
 
 #: PoserConfig keys that model files may hold but that are gone: ``recentre_min_shift`` limited the third and
@@ -72,25 +75,37 @@ def crop_subsets(rows: np.ndarray, num_points: int, samples: int, rng: np.random
             else sample_crop(rows, num_points, rng) for s in range(samples)]
 
 
+def subset_rolls(samples: int, roll_deg: float) -> np.ndarray:
+    """The roll in radians (samples,) of each of a crop's ``samples`` subsets: evenly spread over [-roll_deg,
+    roll_deg] degrees; none for one subset or ``roll_deg`` 0."""
+    if samples <= 1 or roll_deg == 0:
+        return np.zeros(max(samples, 1))
+    return np.deg2rad(np.linspace(-roll_deg, roll_deg, samples))
+
+
 @torch.no_grad()
 def crop_predictions(net, features: np.ndarray, centres: np.ndarray, classes: np.ndarray, diameters: np.ndarray,
-                     crop_cfg: CropConfig, normalisation: dict, seed: int = 0, device="cpu", samples: int = 1):
-    """Run the crop network on ``samples`` point subsets (:func:`crop_subsets`) of one crop per centre.
+                     crop_cfg: CropConfig, normalisation: dict, seed: int = 0, device="cpu", samples: int = 1,
+                     roll_deg: float = 0.0):
+    """Run the crop network on ``samples`` point subsets (:func:`crop_subsets`) of one crop per centre, subset k
+    rolled about the camera ray through the centre by :func:`subset_rolls`' k-th angle.
 
     features: (N,9) the frame's label features; centres: (D,3) metres; classes: (D,) class indices;
-    diameters: (D,) metres. Returns a list of D (rows (m,) into features, fg probability (m,), model coordinates
-    (m,3) metres), the subsets' predictions one after the other (m = samples x ``crop_cfg.num_points``), or None
-    where the crop holds fewer than ``crop_cfg.min_points`` points.
+    diameters: (D,) metres; roll_deg: degrees. Returns a list of D (rows (m,) into features, fg probability (m,),
+    model coordinates (m,3) metres), the subsets' predictions one after the other (m = samples x
+    ``crop_cfg.num_points``), or None where the crop holds fewer than ``crop_cfg.min_points`` points.
     """
     xyz = np.asarray(features[:, :3], np.float64)
     rng = np.random.default_rng(seed)
+    rolls = subset_rolls(samples, roll_deg)
     batch, keep, out = [], [], [None] * len(centres)
     for k, (c, dia) in enumerate(zip(centres, diameters)):
         rows = ball_rows(xyz, c, crop_cfg.radius * dia)
         if len(rows) < crop_cfg.min_points:
             continue
-        for sub in crop_subsets(rows, crop_cfg.num_points, samples, rng):
-            batch.append(crop_input(features, sub, c, crop_cfg.radius * dia, normalisation))
+        for sub, roll in zip(crop_subsets(rows, crop_cfg.num_points, samples, rng), rolls):
+            batch.append(roll_crop_input(crop_input(features, sub, c, crop_cfg.radius * dia, normalisation), c,
+                                         roll))
             keep.append((k, sub))
     if not batch:
         return out
@@ -182,7 +197,7 @@ class CropPoser:
         classes = np.array([self.class_ids.index(o) for o in oids], np.int64)
         dia = np.array([self.objects.diameters[o] for o in oids], np.float64)
         return crop_predictions(self.net, features, np.asarray(centres), classes, dia, self.crop_cfg,
-                                self.normalisation, self.seed, self.device, samples)
+                                self.normalisation, self.seed, self.device, samples, self.cfg.roll_deg)
 
     def __call__(self, detections: list[Detection], features: np.ndarray, timings: dict | None = None
                  ) -> list[Detection]:

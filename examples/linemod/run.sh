@@ -114,6 +114,14 @@ for d in lm_val lchf_val; do
     eval_variant "$OUT/$d.h5" "reports/lm8_${d}_${a%%:*}" "${a#*:}"
   done
 done
+#    stage 2's subsets rolled apart by up to 15 degrees (`infer.roll_deg=15`) on the validation captures with sampling
+#    seeds 0-3, and lm8 as it is with seeds 1-3 (RESULTS.md, "Stage 2's subsets rolled apart")
+for seed in 0 1 2 3; do
+  for d in lm_val lchf_val; do
+    eval_variant "$OUT/$d.h5" "reports/lm8_${d}_roll15_seed$seed" "infer.roll_deg=15" --seed $seed
+    [ $seed = 0 ] || eval_variant "$OUT/$d.h5" "reports/lm8_${d}_seed$seed" "" --seed $seed
+  done
+done
 for d in lm_test:test lchf_test:lchf; do
   eval_variant "$OUT/${d%%:*}.h5" "reports/lm8_${d#*:}_seed1" "" --seed 1
   eval_variant "$OUT/${d%%:*}.h5" "reports/lm8_${d#*:}_density1.25_seed1" "sampling.density=1.25" --seed 1
