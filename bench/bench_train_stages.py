@@ -2,6 +2,11 @@
 side (stage 1 on one thread, stage 2 on one, each in its own process, as ``detector train`` runs them; README).
 
 Usage: .venv/bin/python bench/bench_train_stages.py --data data/lm_train.h5 [--stage1-steps 300] [--stage2-steps 700]
+       [--side-threads 1,2]
+
+``--side-threads`` lists stage 1's thread counts for the side-by-side case (stage 2 always on one): 1 is how
+``detector train`` runs them; 2 asks whether stage 1 on two threads, which gives the numbers of stage 1 trained alone
+on two (one after the other, as ``checkpoints/lm8.pt``'s), shares the two cores as well.
 
 Each case trains the default two-stage settings (``detector/presets/two-stage.yaml``) from scratch into a scratch
 folder for a fixed number of steps, with its data-loader processes, in fresh processes. A stage's seconds a step are
@@ -69,7 +74,14 @@ def main() -> None:
     ap.add_argument("--stage1-steps", type=int, default=300)
     ap.add_argument("--stage2-steps", type=int, default=700)
     ap.add_argument("--skip", type=int, default=250, help="steps not timed at the start of each run")
+    ap.add_argument("--side-threads", default="1", help="stage 1's thread counts side by side, e.g. 1,2")
     a = ap.parse_args()
+    try:
+        side_threads = [int(x) for x in a.side_threads.split(",")]
+    except ValueError:
+        side_threads = []
+    if not side_threads or min(side_threads) < 1:
+        raise SystemExit(f"bench_train_stages: --side-threads takes counts such as 1,2, got {a.side_threads!r}")
     if not a.data.is_file():
         raise SystemExit(f"bench_train_stages: {a.data} is not a file")
     out = {}
@@ -83,19 +95,21 @@ def main() -> None:
                 out[f"{stage} alone, {threads} threads"] = round(median_after(run, a.skip), 4)
                 print(json.dumps({f"{stage} alone, {threads} threads": out[f"{stage} alone, {threads} threads"]}),
                       flush=True)
-        procs = [start("stage1", 1, a.stage1_steps, a.data, tmp / "side1"),
-                 start("stage2", 1, 10 * a.stage2_steps, a.data, tmp / "side2")]
-        if procs[0].wait() != 0:
-            raise SystemExit("bench_train_stages: stage 1 side by side failed")
-        procs[1].terminate()
-        procs[1].wait()
-        end1 = sum(step_times(tmp / "side1")[1])
-        s1 = median_after(tmp / "side1", a.skip)
-        s2 = median_after(tmp / "side2", a.skip, until=end1)
-    out["side by side: stage 1, 1 thread"] = round(s1, 4)
-    out["side by side: stage 2, 1 thread"] = round(s2, 4)
-    out["side by side: work a second"] = round(out["stage1 alone, 2 threads"] / s1 + out["stage2 alone, 2 threads"] / s2,
-                                               3)
+        for n in side_threads:
+            procs = [start("stage1", n, a.stage1_steps, a.data, tmp / f"side1_{n}"),
+                     start("stage2", 1, 10 * a.stage2_steps, a.data, tmp / f"side2_{n}")]
+            if procs[0].wait() != 0:
+                raise SystemExit(f"bench_train_stages: stage 1 on {n} threads side by side failed")
+            procs[1].terminate()
+            procs[1].wait()
+            end1 = sum(step_times(tmp / f"side1_{n}")[1])
+            s1 = median_after(tmp / f"side1_{n}", a.skip)
+            s2 = median_after(tmp / f"side2_{n}", a.skip, until=end1)
+            out[f"side by side: stage 1, {n} thread{'s' * (n > 1)}"] = round(s1, 4)
+            out[f"side by side: stage 2, 1 thread (stage 1 on {n})"] = round(s2, 4)
+            out[f"side by side: work a second (stage 1 on {n})"] = round(
+                out["stage1 alone, 2 threads"] / s1 + out["stage2 alone, 2 threads"] / s2, 3)
+            print(json.dumps({k: v for k, v in out.items() if k.startswith("side") and f"{n}" in k}), flush=True)
     print(json.dumps(out, indent=1))
 
 
