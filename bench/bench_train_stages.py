@@ -80,8 +80,9 @@ def main() -> None:
         side_threads = [int(x) for x in a.side_threads.split(",")]
     except ValueError:
         side_threads = []
-    if not side_threads or min(side_threads) < 1:
-        raise SystemExit(f"bench_train_stages: --side-threads takes counts such as 1,2, got {a.side_threads!r}")
+    if not side_threads or min(side_threads) < 1 or len(set(side_threads)) < len(side_threads):
+        raise SystemExit("bench_train_stages: --side-threads takes distinct counts such as 1,2, got "
+                         f"{a.side_threads!r}")
     if not a.data.is_file():
         raise SystemExit(f"bench_train_stages: {a.data} is not a file")
     out = {}
@@ -105,11 +106,12 @@ def main() -> None:
             end1 = sum(step_times(tmp / f"side1_{n}")[1])
             s1 = median_after(tmp / f"side1_{n}", a.skip)
             s2 = median_after(tmp / f"side2_{n}", a.skip, until=end1)
-            out[f"side by side: stage 1, {n} thread{'s' * (n > 1)}"] = round(s1, 4)
-            out[f"side by side: stage 2, 1 thread (stage 1 on {n})"] = round(s2, 4)
-            out[f"side by side: work a second (stage 1 on {n})"] = round(
-                out["stage1 alone, 2 threads"] / s1 + out["stage2 alone, 2 threads"] / s2, 3)
-            print(json.dumps({k: v for k, v in out.items() if k.startswith("side") and f"{n}" in k}), flush=True)
+            case = {f"side by side: stage 1, {n} thread{'s' * (n > 1)}": round(s1, 4),
+                    f"side by side: stage 2, 1 thread (stage 1 on {n})": round(s2, 4),
+                    f"side by side: work a second (stage 1 on {n})": round(
+                        out["stage1 alone, 2 threads"] / s1 + out["stage2 alone, 2 threads"] / s2, 3)}
+            out.update(case)
+            print(json.dumps(case), flush=True)
     print(json.dumps(out, indent=1))
 
 

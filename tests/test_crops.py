@@ -423,26 +423,31 @@ def test_crop_subsets_are_rolled_apart_and_keep_their_points(monkeypatch):
             return {"fg_logit": torch.zeros(features.shape[:2]), "coords": features[..., :3].clone()}
 
     rng = np.random.default_rng(9)
-    c, dia = np.array([0.02, 0.05, 0.9]), 0.1
-    feats = np.zeros((3000, 9), np.float32)
-    feats[:, :3] = c + rng.normal(0, 0.03, (3000, 3))
+    centres, dia = np.array([[0.02, 0.05, 0.9], [-0.1, 0.0, 0.7]]), 0.1
+    feats = np.zeros((6000, 9), np.float32)
+    feats[:3000, :3] = centres[0] + rng.normal(0, 0.03, (3000, 3))
+    feats[3000:, :3] = centres[1] + rng.normal(0, 0.03, (3000, 3))
     feats[:, 6:9] = [0.0, 0.0, -1.0]
     cfg = CropConfig(num_points=128)
     runs = {}
     for roll in (0.0, 12.0):
         net = Recorder()
-        out = crop_predictions(net, feats, c[None], np.array([0]), np.array([dia]), cfg, NORMALISATION, seed=4,
-                               samples=3, roll_deg=roll)
-        runs[roll] = (net.seen[0], out[0])
-    (plain, (rows0, _, _)), (rolled, (rows1, _, coords1)) = runs[0.0], runs[12.0]
-    assert np.array_equal(rows0, rows1)
-    for k, angle in enumerate(subset_rolls(3, 12.0)):
-        np.testing.assert_allclose(rolled[k].numpy(), roll_crop_input(plain[k].numpy(), c, angle), atol=1e-6)
-    # the echoed (rolled) positions come back beside the rows they were cut from: subset 0 turned by -12 degrees
-    sub0 = rows1[:128]
-    back = (feats[sub0, :3] - c) / (cfg.radius * dia)
-    Q = roll_about_ray(np.zeros((0, 3)), c, np.deg2rad(-12.0))[1]
-    np.testing.assert_allclose(coords1[:128] / dia, back @ Q.T, atol=1e-5)
+        out = crop_predictions(net, feats, centres, np.array([0, 0]), np.array([dia, dia]), cfg, NORMALISATION,
+                               seed=4, samples=3, roll_deg=roll)
+        runs[roll] = (net.seen[0], out)
+    (plain, out0), (rolled, out1) = runs[0.0], runs[12.0]
+    angles = subset_rolls(3, 12.0)
+    for d, c in enumerate(centres):  # the network's batch holds crop d's subsets at rows 3d, 3d + 1, 3d + 2
+        rows0, rows1, coords1 = out0[d][0], out1[d][0], out1[d][2]
+        assert np.array_equal(rows0, rows1)
+        for k, angle in enumerate(angles):
+            np.testing.assert_allclose(rolled[3 * d + k].numpy(), roll_crop_input(plain[3 * d + k].numpy(), c, angle),
+                                       atol=1e-6)
+            # the echoed (rolled) positions come back beside the rows they were cut from
+            sub = slice(128 * k, 128 * (k + 1))
+            Q = roll_about_ray(np.zeros((0, 3)), c, angle)[1]
+            back = (feats[rows1[sub], :3] - c) / (cfg.radius * dia)
+            np.testing.assert_allclose(coords1[sub] / dia, back @ Q.T, atol=1e-5)
 
 
 def test_ransac_kabsch_recovers_a_pose_with_half_outliers():
