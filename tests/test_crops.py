@@ -401,11 +401,11 @@ def test_a_rolled_crop_input_is_the_crop_of_the_rolled_points():
     assert not np.allclose(rolled[:, :3], inp[:, :3], atol=1e-3)
 
 
-def test_crop_subsets_are_rolled_apart_and_keep_their_points(monkeypatch):
+def test_crop_subsets_are_rolled_apart_and_keep_their_points():
     """With infer.roll_deg, subset k of a crop reaches the network rolled by the k-th of angles spread evenly over
     [-roll_deg, roll_deg], the same points as without the roll; the predictions come back paired with the points'
     own rows (the model coordinates do not depend on the roll)."""
-    from detector.stage2.crops import roll_crop_input
+    from detector.stage2.crops import ray_roll, roll_crop_input
     from detector.stage2.poser import PoserConfig, crop_predictions, subset_rolls
 
     np.testing.assert_allclose(subset_rolls(3, 10.0), np.deg2rad([-10.0, 0.0, 10.0]))
@@ -445,7 +445,7 @@ def test_crop_subsets_are_rolled_apart_and_keep_their_points(monkeypatch):
                                        atol=1e-6)
             # the echoed (rolled) positions come back beside the rows they were cut from
             sub = slice(128 * k, 128 * (k + 1))
-            Q = roll_about_ray(np.zeros((0, 3)), c, angle)[1]
+            Q = ray_roll(c, angle)
             back = (feats[rows1[sub], :3] - c) / (cfg.radius * dia)
             np.testing.assert_allclose(coords1[sub] / dia, back @ Q.T, atol=1e-5)
 

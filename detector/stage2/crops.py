@@ -246,14 +246,20 @@ def jittered_centre(centre: np.ndarray, diameter: float, cfg: CropConfig, rng: n
     return np.asarray(centre, np.float64) + np.clip(rng.normal(0.0, cfg.centre_jitter * diameter, 3), -lim, lim)
 
 
+def ray_roll(centre: np.ndarray, angle: float) -> np.ndarray:
+    """The rotation Q (3,3) float64 by ``angle`` radians about the camera ray through ``centre`` (3,) metres."""
+    axis = np.asarray(centre, np.float64) / np.linalg.norm(centre)
+    K = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
+    return np.eye(3) + np.sin(angle) * K + (1 - np.cos(angle)) * K @ K
+
+
 def roll_about_ray(points: np.ndarray, centre: np.ndarray, angle: float) -> tuple[np.ndarray, np.ndarray]:
     """Rotate points about the camera ray through ``centre`` by ``angle`` radians (a camera roll seen from the crop).
 
-    points: (n,3) metres; centre: (3,). Returns the rotated points (n,3) and the rotation Q (3,3) (p' = Q (p - c) + c).
+    points: (n,3) metres; centre: (3,). Returns the rotated points (n,3) and the rotation Q (3,3) (p' = Q (p - c) + c,
+    :func:`ray_roll`).
     """
-    axis = np.asarray(centre, np.float64) / np.linalg.norm(centre)
-    K = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
-    Q = np.eye(3) + np.sin(angle) * K + (1 - np.cos(angle)) * K @ K
+    Q = ray_roll(centre, angle)
     return (np.asarray(points, np.float64) - centre) @ Q.T + centre, Q
 
 
@@ -263,7 +269,7 @@ def roll_crop_input(feats: np.ndarray, centre: np.ndarray, angle: float) -> np.n
     turned, colours kept. Returns a new array; the input itself for angle 0."""
     if angle == 0:
         return feats
-    Q = roll_about_ray(np.zeros((0, 3)), centre, angle)[1].astype(np.float32)
+    Q = ray_roll(centre, angle).astype(np.float32)
     out = np.array(feats, dtype=np.float32, copy=True)
     out[:, :3] = out[:, :3] @ Q.T
     out[:, 6:9] = out[:, 6:9] @ Q.T
