@@ -42,7 +42,7 @@ def test_split_sets_routes_geometry_sampling_and_stage2_settings():
 def test_shipped_models_sample_as_they_trained_and_a_stored_density_is_applied(tmp_path):
     import torch
 
-    for name in ("lm8.pt", "ycbv3.pt"):  # model files without the setting: as trained (4096 points, 1024 keypoints)
+    for name in ("lm8.pt", "ycbv3.pt"):  # both store density 1: they sample as trained (4096 points, 1024 keypoints)
         ck = load_checkpoint(CHECKPOINTS / name)
         assert ck.sampling == {"density": 1.0}
         assert (ck.num_points, ck.model_config.npoints[0]) == (4096, 1024)

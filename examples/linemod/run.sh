@@ -14,13 +14,24 @@ D=.venv/bin/detector
 M=${MODELS:-../shared/data/lm/models}      # BOP LineMOD models (mm)
 OUT=${OUT:-data}
 mkdir -p "$OUT"
-# train_beside KEEP RUN YAML: the run folder RUN holds a copy of runs/lm8's finished stage KEEP (stage1 or stage2)
-# and YAML as its two_stage.yaml, and is trained on the training capture (resumed: the finished stage is not trained
-# again), unless its model.pt exists (steps 7-8)
+# The studies of RESULTS.md made on the previous lm8.pt (stage 2 18000 steps, the stages one after the other) use its
+# run, runs/lm8_prev: train_previous trains it (about 57 minutes on 2 cores) unless its model.pt exists
+P=runs/lm8_prev
+train_previous() {
+  if [ -f "$P/two_stage.yaml" ] && [ ! -f "$P/model.pt" ]; then
+    $D train "$OUT/lm_train.h5" --out "$P" --resume --quiet
+  elif [ ! -f "$P/model.pt" ]; then
+    $D train "$OUT/lm_train.h5" --out "$P" --set stage2.keep_every=3000 --set stage2.narrow_steps=0 --quiet
+  fi
+}
+# train_beside KEEP RUN YAML: the run folder RUN holds a copy of runs/lm8_prev's finished stage KEEP (stage1 or
+# stage2) and YAML as its two_stage.yaml, and is trained on the training capture (resumed: the finished stage is not
+# trained again), unless its model.pt exists (steps 7-8)
 train_beside() {
   local keep=$1 r=$2 yaml=$3
   if [ ! -f "$r/model.pt" ]; then
-    [ -d "$r/$keep" ] || { mkdir -p "$r" && cp -r "runs/lm8/$keep" "$r/"; }
+    train_previous
+    [ -d "$r/$keep" ] || { mkdir -p "$r" && cp -r "$P/$keep" "$r/"; }
     printf '%s\n' "$yaml" > "$r/two_stage.yaml"
     $D train "$OUT/lm_train.h5" --set stage2.narrow_steps=0 --out "$r" --resume --quiet
   fi
@@ -64,70 +75,89 @@ for s in lm_train lm_test lm_val lchf_test lm_val2 lchf_val; do
   [ -f "$OUT/$s.h5" ] || $A label "$OUT/$s" --out "$OUT/$s.h5" --quiet
 done
 
-# 3. the default two-stage model: stage 1 (objects and their centres; colour over its frame mean, `grey_world`), then
-#    stage 2 (pose in crops);
-#    runs/lm8/model.pt holds both (checkpoints/lm8.pt is this file); stage 2 (18000 steps, the default) keeps its
-#    weights every 3000 steps for the time-to-accuracy curve. The stages train one after the other, each on all
-#    threads (`stage2.narrow_steps=0`), as checkpoints/lm8.pt did; the default since 2026-12-06 trains them side by
-#    side, which gives other weights (step 9)
+# 3. the shipped two-stage model (checkpoints/lm8.pt is runs/lm8/model.pt): stage 1 (objects and their centres;
+#    colour over its frame mean, `grey_world`; seed 1) and stage 2 (pose in crops; 24000 steps, keeping its weights
+#    every 3000 steps) trained side by side, `detector train`'s default on a CPU (about 57 minutes on 2 cores).
+#    Stage 1's seed was chosen among 0-2 on the validation captures and the real frames without LineMOD objects
+#    (step 9; RESULTS.md)
+if [ -f runs/lm8/two_stage.yaml ] && ! grep -q "seed: 1" runs/lm8/two_stage.yaml; then
+  echo "runs/lm8 holds another recipe's run (the 18000-step lm8.pt's?): move it to runs/lm8_prev and its reports/lm8_*" \
+    "to reports/lm8prev_*, then run this again" >&2
+  exit 1
+fi
 if [ -f runs/lm8/two_stage.yaml ] && [ ! -f runs/lm8/model.pt ]; then
   $D train "$OUT/lm_train.h5" --out runs/lm8 --resume --quiet
 elif [ ! -f runs/lm8/model.pt ]; then
-  $D train "$OUT/lm_train.h5" --out runs/lm8 --set stage2.keep_every=3000 --set stage2.narrow_steps=0 --quiet
+  $D train "$OUT/lm_train.h5" --out runs/lm8 --set stage1.seed=1 --set stage2.steps=24000 --set stage2.keep_every=3000 \
+    --quiet
 fi
 
-# 4. evaluation with the model's own thresholds: linemod test set with and without ICP, lchf test set (F1)
+# 4. evaluation with the model's own thresholds: linemod test set with and without ICP, lchf test set (F1), also with
+#    sampling seeds 1 (both) and 2 (lchf), and both validation captures with sampling seeds 0-3
 $D eval runs/lm8/model.pt "$OUT/lm_test.h5"   --out reports/lm8_test  --icp --quiet
 $D eval runs/lm8/model.pt "$OUT/lchf_test.h5" --out reports/lm8_lchf  --icp --quiet
 #    where the missed instances of the linemod test set were lost (RESULTS.md, "Where it falls short")
 .venv/bin/python bench/probe_misses.py runs/lm8/model.pt "$OUT/lm_test.h5" reports/lm8_test/report.json
-#    and without the depth check and the other classes (the inference made for real frames; RESULTS.md)
-OFF=(--set geometry.depth_check=false --set geometry.other_classes=2)
-$D eval runs/lm8/model.pt "$OUT/lm_test.h5"   --out reports/lm8_test_nochecks --icp --quiet "${OFF[@]}"
-$D eval runs/lm8/model.pt "$OUT/lchf_test.h5" --out reports/lm8_lchf_nochecks --icp --quiet "${OFF[@]}"
-#    ICP as before its half-turn starts, the half turns with 30 ICP iterations, a stage-1 centre from 2 votes, stage 1
-#    sampling 1.25, 1.5 and 2 times as densely as it trained, 1.25 with a centre from 4 votes (the last five on the
-#    validation captures too), the poses after ICP held to 95 % depth consistency (on all four captures too) and
-#    sampling seed 1 (RESULTS.md, "ICP's half-turn starts", "Stage 1's sampling density", "A stricter depth check
-#    after ICP" and the ycbv section)
+# eval_run RUN LABELS REPORT "KEY=VALUE ..." [EVAL OPTIONS]: RUN's detector eval --icp with those --set values into
+# the folder REPORT, unless it holds a report
+eval_run() {
+  local r=$1 data=$2 rep=$3 kv sets=()
+  for kv in $4; do sets+=(--set "$kv"); done
+  shift 4
+  [ -f "$rep/report.json" ] || $D eval "$r/model.pt" "$data" --out "$rep" --icp --quiet "${sets[@]}" "$@"
+}
+eval_run runs/lm8 "$OUT/lm_test.h5" reports/lm8_test_seed1 "" --seed 1
+for seed in 1 2; do eval_run runs/lm8 "$OUT/lchf_test.h5" reports/lm8_lchf_seed$seed "" --seed $seed; done
+for seed in 0 1 2 3; do
+  for d in lm_val lchf_val; do eval_run runs/lm8 "$OUT/$d.h5" "reports/lm8_${d}_seed$seed" "" --seed $seed; done
+done
+
+# 4b. the studies of RESULTS.md made on the previous lm8.pt (runs/lm8_prev: train_previous, above), only with
+#     PREVIOUS=1: its test captures, and without the depth check and the other classes (the inference made for real
+#     frames); ICP as before its half-turn starts, the half turns with 30 ICP iterations, a stage-1 centre from 2
+#     votes, stage 1 sampling 1.25, 1.5 and 2 times as densely as it trained, 1.25 with a centre from 4 votes (the
+#     last five on the validation captures too), the poses after ICP held to 95 % depth consistency (on all four
+#     captures too), where its missed instances were lost, and sampling seed 1 (RESULTS.md, "ICP's half-turn starts", "Stage 1's sampling density", "A
+#     stricter depth check after ICP" and the ycbv section); stage 2's subsets rolled apart by up to 15 degrees
+#     (`infer.roll_deg=15`) on the validation captures with sampling seeds 0-3, and the model as it is with seeds 1-3
+#     ("Stage 2's subsets rolled apart"; step 9 scores the seeds too); the time-to-accuracy curve (each kept stage-2
+#     snapshot with stage 1, on the test set: docs/img)
 G=geometry
 STRICT="$G.depth_consistent_refined=0.95"
-VARIANTS=("minvotes2:$G.min_votes=2" "density1.25:sampling.density=1.25" "density1.5:sampling.density=1.5"
-          "density2:sampling.density=2" "density1.25_minvotes4:sampling.density=1.25 $G.min_votes=4"
-          "refined95:$STRICT")
-# eval_variant LABELS REPORT "KEY=VALUE ..." [EVAL OPTIONS]: runs/lm8's detector eval --icp with those --set values
-# into the folder REPORT, unless it holds a report
-eval_variant() {
-  local data=$1 rep=$2 kv sets=()
-  for kv in $3; do sets+=(--set "$kv"); done
-  shift 3
-  [ -f "$rep/report.json" ] || $D eval runs/lm8/model.pt "$data" --out "$rep" --icp --quiet "${sets[@]}" "$@"
-}
-for a in "noturns:$G.icp_half_turns=false $G.icp_iterations=30" "it30:$G.icp_iterations=30" "${VARIANTS[@]}"; do
-  for d in lm_test:test lchf_test:lchf; do
-    eval_variant "$OUT/${d%%:*}.h5" "reports/lm8_${d#*:}_${a%%:*}" "${a#*:}"
+if [ "${PREVIOUS:-0}" = 1 ]; then
+  train_previous
+  eval_run $P "$OUT/lm_test.h5"   reports/lm8prev_test ""
+  eval_run $P "$OUT/lchf_test.h5" reports/lm8prev_lchf ""
+  .venv/bin/python bench/probe_misses.py $P/model.pt "$OUT/lm_test.h5" reports/lm8prev_test/report.json
+  OFF="$G.depth_check=false $G.other_classes=2"
+  eval_run $P "$OUT/lm_test.h5"   reports/lm8prev_test_nochecks "$OFF"
+  eval_run $P "$OUT/lchf_test.h5" reports/lm8prev_lchf_nochecks "$OFF"
+  VARIANTS=("minvotes2:$G.min_votes=2" "density1.25:sampling.density=1.25" "density1.5:sampling.density=1.5"
+            "density2:sampling.density=2" "density1.25_minvotes4:sampling.density=1.25 $G.min_votes=4"
+            "refined95:$STRICT")
+  for a in "noturns:$G.icp_half_turns=false $G.icp_iterations=30" "it30:$G.icp_iterations=30" "${VARIANTS[@]}"; do
+    for d in lm_test:test lchf_test:lchf; do
+      eval_run $P "$OUT/${d%%:*}.h5" "reports/lm8prev_${d#*:}_${a%%:*}" "${a#*:}"
+    done
   done
-done
-for d in lm_val lchf_val; do
-  eval_variant "$OUT/$d.h5" "reports/lm8_$d" ""
-  for a in "${VARIANTS[@]}"; do
-    eval_variant "$OUT/$d.h5" "reports/lm8_${d}_${a%%:*}" "${a#*:}"
-  done
-done
-#    stage 2's subsets rolled apart by up to 15 degrees (`infer.roll_deg=15`) on the validation captures with sampling
-#    seeds 0-3, and lm8 as it is with seeds 1-3 (RESULTS.md, "Stage 2's subsets rolled apart"; step 9 reads these too)
-for seed in 0 1 2 3; do
   for d in lm_val lchf_val; do
-    eval_variant "$OUT/$d.h5" "reports/lm8_${d}_roll15_seed$seed" "infer.roll_deg=15" --seed $seed
-    [ $seed = 0 ] || eval_variant "$OUT/$d.h5" "reports/lm8_${d}_seed$seed" "" --seed $seed
+    eval_run $P "$OUT/$d.h5" "reports/lm8prev_$d" ""
+    for a in "${VARIANTS[@]}"; do
+      eval_run $P "$OUT/$d.h5" "reports/lm8prev_${d}_${a%%:*}" "${a#*:}"
+    done
   done
-done
-for d in lm_test:test lchf_test:lchf; do
-  eval_variant "$OUT/${d%%:*}.h5" "reports/lm8_${d#*:}_seed1" "" --seed 1
-  eval_variant "$OUT/${d%%:*}.h5" "reports/lm8_${d#*:}_density1.25_seed1" "sampling.density=1.25" --seed 1
-done
-# the time-to-accuracy curve: each kept stage-2 snapshot with stage 1, on the test set (docs/img)
-.venv/bin/python examples/linemod/curve.py runs/lm8 "$OUT/lm_test.h5" --out docs/img/time_to_accuracy.png
+  for seed in 0 1 2 3; do
+    for d in lm_val lchf_val; do
+      eval_run $P "$OUT/$d.h5" "reports/lm8prev_${d}_roll15_seed$seed" "infer.roll_deg=15" --seed $seed
+      [ $seed = 0 ] || eval_run $P "$OUT/$d.h5" "reports/lm8prev_${d}_seed$seed" "" --seed $seed
+    done
+  done
+  for d in lm_test:test lchf_test:lchf; do
+    eval_run $P "$OUT/${d%%:*}.h5" "reports/lm8prev_${d#*:}_seed1" "" --seed 1
+    eval_run $P "$OUT/${d%%:*}.h5" "reports/lm8prev_${d#*:}_density1.25_seed1" "sampling.density=1.25" --seed 1
+  done
+  .venv/bin/python examples/linemod/curve.py $P "$OUT/lm_test.h5" --out docs/img/time_to_accuracy.png
+fi
 
 # 5. the paper's single-shot network, for the side-by-side tables (optional: PAPER=1)
 if [ "${PAPER:-0}" = 1 ]; then
@@ -150,22 +180,26 @@ SINGLE=(); [ -f reports/lm_test_tau0/report.json ] && SINGLE=(--single-shot repo
 #     detector predict reads a frame, and with every point (--max-depth 20)
 false_alarms runs/lm8/model.pt
 false_alarms runs/lm8/model.pt --max-depth 20
-#     and with stage 1 sampling 1.25 times as densely as it trained, also with a centre from 4 votes (RESULTS.md,
-#     "Stage 1's sampling density")
-for extra in "" "--set geometry.min_votes=4"; do
-  false_alarms runs/lm8/model.pt --set sampling.density=1.25 $extra
-  false_alarms runs/lm8/model.pt --set sampling.density=1.25 $extra --max-depth 20
-done
-#     and with the poses after ICP held to 95 % depth consistency ("A stricter depth check after ICP")
-false_alarms runs/lm8/model.pt --set "$STRICT"
+#     and (PREVIOUS=1) the previous lm8.pt the same way, also with stage 1 sampling 1.25 times as densely as it
+#     trained, also with a centre from 4 votes (RESULTS.md, "Stage 1's sampling density"), and with the poses after
+#     ICP held to 95 % depth consistency ("A stricter depth check after ICP")
+if [ "${PREVIOUS:-0}" = 1 ]; then
+  false_alarms $P/model.pt
+  false_alarms $P/model.pt --max-depth 20
+  for extra in "" "--set geometry.min_votes=4"; do
+    false_alarms $P/model.pt --set sampling.density=1.25 $extra
+    false_alarms $P/model.pt --set sampling.density=1.25 $extra --max-depth 20
+  done
+  false_alarms $P/model.pt --set "$STRICT"
+fi
 # 6c. the working volume (RESULTS.md): the test capture labelled with every point, not only those within the
 #     1.75 m of the training labels
 [ -f "$OUT/lm_test_all.h5" ] || $A label "$OUT/lm_test" --out "$OUT/lm_test_all.h5" --max-depth 20 --quiet
-$D eval runs/lm8/model.pt "$OUT/lm_test_all.h5" --out reports/lm8_test_all --icp --quiet
+eval_run runs/lm8 "$OUT/lm_test_all.h5" reports/lm8_test_all ""
 
-# 7. training length (RESULTS.md, "Training length"): stage 2 alone trained again beside runs/lm8's stage 1 for
-#    13000 steps (the previous lm8.pt's stage 2, about 29 minutes), and stage 1 alone for 4000 steps instead of
-#    3000 beside runs/lm8's stage 2 (about 19 minutes); each scored on both test and both validation captures, and
+# 7. training length (RESULTS.md, "Training length"): stage 2 alone trained again beside the previous lm8.pt's
+#    stage 1 (runs/lm8_prev) for 13000 steps (the lm8.pt before it, about 29 minutes), and stage 1 alone for 4000
+#    steps instead of 3000 beside runs/lm8_prev's stage 2 (about 19 minutes); each scored on both test and both validation captures, and
 #    the longer stage 1 on the real frames without LineMOD objects. Only with TRAINING_LENGTH=1.
 if [ "${TRAINING_LENGTH:-0}" = 1 ]; then
   train_beside stage1 runs/lm8-s2-13000 "$(printf 'stage2:\n  steps: 13000\n  keep_every: 1300')"
@@ -175,8 +209,9 @@ if [ "${TRAINING_LENGTH:-0}" = 1 ]; then
   false_alarms runs/lm8-s1-4000/model.pt
 fi
 
-# 8. stage 1 alone trained again beside runs/lm8's stage 2 (about 15 minutes each; RESULTS.md): its class loss
-#    weighted twice (`stage1.loss.w_cls=2`, tried, not kept), a second seed of the default (seed 1), trained on
+# 8. stage 1 alone trained again beside runs/lm8_prev's stage 2 (about 15 minutes each; RESULTS.md): its class loss
+#    weighted twice (`stage1.loss.w_cls=2`, tried, not kept), a second seed of that stage 1 (seed 1, two threads,
+#    the stages one after the other; not lm8.pt's one-thread seed-1 stage 1), trained on
 #    1.25 times the points and keypoints (5120 and 1280, sampled at inference as trained: "Stage 1's sampling
 #    density"; tried, not kept) and with object keypoints weighing twice the background ones in its class loss
 #    (`stage1.loss.fg_weight=2`), each scored on both test and both validation captures and on the real frames
@@ -198,11 +233,13 @@ fi
 # 9. the stages side by side (`detector train`'s default on a CPU since 2026-12-06), with stage 2 trained 21000 and
 #    24000 steps instead of 18000 (RESULTS.md, "A longer stage 2"; BENCHMARKS.md), each scored on both validation
 #    and both test captures and on the real frames without LineMOD objects; then the 24000-step stage 2 beside
-#    runs/lm8's stage 1 (stage 2 trains on true centres, so it is the same stage 2 whichever stage 1 it serves; the
-#    two finished stages copied into one run folder, which `detector train --resume` only assembles), scored the same
-#    way; and the validation captures with sampling seeds 1-3 for the 24000-step run and that pair (lm8's: step 4), and
-#    the LC-HF-style test capture with seeds 1-2 for the 24000-step run and lm8. Only with
-#    SIDE_BY_SIDE=1 (about 52 and 57 minutes of training on 2 cores).
+#    runs/lm8_prev's stage 1 (stage 2 trains on true centres, so it is the same stage 2 whichever stage 1 it serves;
+#    the two finished stages copied into one run folder, which `detector train --resume` only assembles) and beside
+#    stage 1 trained on one thread with seeds 1 and 2 instead of 0 (the choice of lm8.pt's stage-1 seed; seed 1's
+#    run equals runs/lm8 weight for weight), scored the same way; and the validation captures with sampling seeds
+#    1-3 for each of them, the LC-HF-style test capture with seeds 1-2 for the 24000-step run and runs/lm8_prev.
+#    Only with SIDE_BY_SIDE=1 (about 52 and 57 minutes of training on 2 cores, 20 for the two stage-1 seeds side by
+#    side, and runs/lm8_prev's 57 if it is not there).
 if [ "${SIDE_BY_SIDE:-0}" = 1 ]; then
   for s in 21000 24000; do
     r=runs/lm8_sbs${s%000}
@@ -211,26 +248,48 @@ if [ "${SIDE_BY_SIDE:-0}" = 1 ]; then
     eval_captures "$r"
     false_alarms "$r/model.pt"
   done
+  train_previous
   r=runs/lm8-s2-24000
   if [ ! -f "$r/model.pt" ]; then
-    mkdir -p "$r" && rm -rf "$r/stage1" "$r/stage2" && cp -r runs/lm8/stage1 runs/lm8_sbs24/stage2 "$r/"
+    mkdir -p "$r" && rm -rf "$r/stage1" "$r/stage2" && cp -r $P/stage1 runs/lm8_sbs24/stage2 "$r/"
     printf 'stage2:\n  steps: 24000\n  keep_every: 3000\n' > "$r/two_stage.yaml"
     $D train "$OUT/lm_train.h5" --out "$r" --resume --quiet
   fi
-  eval_captures "$r"
-  false_alarms "$r/model.pt"
+  # stage 1 with seeds 1 and 2, each on one thread (as side by side), the two side by side, beside the same stage 2
+  pids=()
+  for seed in 1 2; do
+    r=runs/lm8_sbs24_s1seed$seed
+    if [ ! -f "$r/model.pt" ]; then
+      mkdir -p "$r/stage2" && cp runs/lm8_sbs24/stage2/{config.yaml,last.pt,metrics.csv} "$r/stage2/"
+      cp runs/lm8_sbs24/two_stage.yaml "$r/"
+      $D train "$OUT/lm_train.h5" --out "$r" --resume --set stage1.seed=$seed --set stage2.steps=24000 \
+        --set stage2.keep_every=3000 --quiet &
+      pids+=($!)
+    fi
+  done
+  for pid in "${pids[@]}"; do wait "$pid"; done
   # eval_seed RUN CAPTURE SEED: runs/RUN/model.pt with ICP and that sampling seed, into reports/RUN-seedSEED-CAPTURE
   eval_seed() {
     local rep=reports/$1-seed$3-$2
     [ -f "$rep/report.json" ] || $D eval "runs/$1/model.pt" "$OUT/$2.h5" --out "$rep" --icp --quiet --seed "$3"
   }
+  for m in lm8-s2-24000 lm8_sbs24_s1seed1 lm8_sbs24_s1seed2; do
+    eval_captures runs/$m
+    false_alarms runs/$m/model.pt
+  done
   for seed in 1 2 3; do
-    for m in lm8_sbs24 lm8-s2-24000; do
+    for m in lm8_sbs24 lm8-s2-24000 lm8_sbs24_s1seed1 lm8_sbs24_s1seed2; do
       eval_seed $m lm_val $seed
       eval_seed $m lchf_val $seed
     done
   done
   eval_seed lm8_sbs24 lchf_test 1
   eval_seed lm8_sbs24 lchf_test 2
-  eval_seed lm8 lchf_test 2    # (seed 1: step 4)
+  # runs/lm8_prev's rows of the tables (the same reports as step 4b's)
+  eval_run $P "$OUT/lm_test.h5"   reports/lm8prev_test ""
+  for seed in 0 1 2; do eval_run $P "$OUT/lchf_test.h5" "reports/lm8prev_lchf$([ $seed = 0 ] || echo _seed$seed)" "" --seed $seed; done
+  for seed in 0 1 2 3; do
+    for d in lm_val lchf_val; do eval_run $P "$OUT/$d.h5" "reports/lm8prev_$d$([ $seed = 0 ] || echo _seed$seed)" "" --seed $seed; done
+  done
+  false_alarms $P/model.pt
 fi
