@@ -55,7 +55,7 @@ class Checkpoint:
     @property
     def sampling_used(self) -> dict:
         """How stage 1 samples a frame, for reports: the sampling settings plus the points drawn and the keypoints
-        predicted at, e.g. ``{"density": 1.0, "points": 4096, "keypoints": 1024}``."""
+        predicted at in each pass, e.g. ``{"density": 1.0, "passes": 1, "points": 4096, "keypoints": 1024}``."""
         return {**self.sampling, "points": self.num_points, "keypoints": self.model_config.npoints[0]}
 
 
@@ -64,9 +64,15 @@ class SamplingConfig:
     """How stage 1 samples a frame at inference, against how it trained. density: the points drawn from a frame
     and the keypoints (the first sampling level's points, where the network predicts) are both this many times the
     training's, rounded up to a multiple of 64; the neighbourhoods keep their radii. Above 1 a small object gets
-    more predictions (RESULTS.md, ``checkpoints/lm8.pt``) for some milliseconds a frame (BENCHMARKS.md)."""
+    more predictions (RESULTS.md, ``checkpoints/lm8.pt``) for some milliseconds a frame (BENCHMARKS.md), but the
+    network meets neighbourhoods denser than it trained on. passes: stage 1 runs on this many samplings of the frame,
+    each drawn as a single pass draws (another seed each; the first is the single pass's), in one batch, and their
+    predictions are pooled: a small object gets that many times the predictions while each pass sees the density
+    the network trained on (:func:`detector.stage1.predictor.network_predictor`). A centre's ``geometry.min_votes``
+    counts the votes of all passes."""
 
     density: float = 1.0
+    passes: int = 1
 
     def __post_init__(self):
         try:
@@ -77,6 +83,12 @@ class SamplingConfig:
             raise DetectorError(f"sampling.density must be a number, got {self.density!r}") from None
         if not 0.25 <= self.density <= 8:
             raise DetectorError(f"sampling.density must be in [0.25, 8], got {self.density}")
+        whole = isinstance(self.passes, (int, float)) and not isinstance(self.passes, bool)
+        if not whole or self.passes != int(self.passes):
+            raise DetectorError(f"sampling.passes must be a whole number, got {self.passes!r}")
+        self.passes = int(self.passes)
+        if not 1 <= self.passes <= 8:
+            raise DetectorError(f"sampling.passes must be in [1, 8], got {self.passes}")
 
     @classmethod
     def from_dict(cls, d: dict | None) -> "SamplingConfig":
@@ -84,7 +96,7 @@ class SamplingConfig:
         d = dict(d or {})
         unknown = set(d) - {f.name for f in fields(cls)}
         if unknown:
-            raise DetectorError(f"unknown sampling option '{sorted(unknown)[0]}' (sampling.density)")
+            raise DetectorError(f"unknown sampling option '{sorted(unknown)[0]}' (sampling.density, sampling.passes)")
         return cls(**d)
 
     def scaled(self, count: int) -> int:

@@ -772,7 +772,8 @@ def test_two_stage_train_resume_eval_predict(labels, tmp_path):
     # the deeper levels as trained; sampling.density=1 (the default) gives the training's back, and the network
     # predicts at each
     density = SamplingConfig(1.5)
-    assert DEFAULTS["sampling"]["density"] == 1 and ck.sampling == {"density": 1.5}
+    assert DEFAULTS["sampling"]["density"] == 1
+    assert ck.sampling == {"density": 1.5, "passes": DEFAULTS["sampling"]["passes"]}
     trained = load_checkpoint(out / "model.pt", sampling={"density": 1})
     assert trained.num_points == 1024 and ck.num_points == density.scaled(1024) > 1024
     assert ck.model_config.npoints[0] == density.scaled(trained.model_config.npoints[0]) > \
@@ -780,7 +781,7 @@ def test_two_stage_train_resume_eval_predict(labels, tmp_path):
     assert ck.model_config.npoints[1:] == trained.model_config.npoints[1:]
     for model in (ck, trained):
         preds = network_predictor(model)(frame)
-        assert len(preds.xyz) == model.model_config.npoints[0]
+        assert len(preds.xyz) == model.sampling["passes"] * model.model_config.npoints[0]
         points = {tuple(row) for row in np.asarray(frame.features[:, :3], np.float64)}
         assert all(tuple(row) in points for row in preds.xyz)  # predictions sit on the frame's points
     # a setting that changes the result is refused on resume, for either stage (stage 1 is complete: checked first)
@@ -794,7 +795,7 @@ def test_two_stage_train_resume_eval_predict(labels, tmp_path):
     assert yaml.safe_load((out / "two_stage.yaml").read_text())["stage2"]["cache_mb"] == 0.5
     rows = (out / "stage2" / "metrics.csv").read_text().strip().splitlines()[1:]
     assert [int(x.split(",")[0]) for x in rows] == [1, 2, 3, 4, 5]
-    assert load_checkpoint(out / "model.pt").sampling == {"density": 1.5}  # the run's own setting, kept
+    assert load_checkpoint(out / "model.pt").sampling["density"] == 1.5  # the run's own setting, kept
     assert len((out / "stage1" / "metrics.csv").read_text().strip().splitlines()) == 3
     # the kept stage-2 snapshots (keep_every 2, kept across the resume): weights without optimiser state
     from detector.training.checkpoint_file import read_checkpoint
@@ -825,7 +826,8 @@ def test_two_stage_train_resume_eval_predict(labels, tmp_path):
     assert r.exit_code == 0, r.output
     s = json.loads((rep / "report.json").read_text())
     assert s["config"]["centre_votes"] and s["config"]["tau"] == tau and "stage2" in s["timing_ms"]
-    assert s["sampling"] == {"density": 1.5, "points": ck.num_points, "keypoints": ck.model_config.npoints[0]}
+    assert s["sampling"] == {"density": 1.5, "passes": ck.sampling["passes"], "points": ck.num_points,
+                             "keypoints": ck.model_config.npoints[0]}
     assert s["config"]["depth_check"] and "depth_check" in s["timing_ms"]
     # --set changes the model's geometry settings for this run; a wrong key or value is a one-line error
     r = run.invoke(det_app, ["eval", str(out / "model.pt"), str(labels), "--out", str(rep), "--icp", "--quiet",
@@ -834,14 +836,16 @@ def test_two_stage_train_resume_eval_predict(labels, tmp_path):
     s = json.loads((rep / "report.json").read_text())
     assert not s["config"]["depth_check"] and s["config"]["tau"] == 0.3 and "depth_check" not in s["timing_ms"]
     r = run.invoke(det_app, ["eval", str(out / "model.pt"), str(labels), "--out", str(rep), "--icp", "--quiet",
-                             "--frames", "2", "--set", "sampling.density=1", "--set", "geometry.tau=0.3"])
+                             "--frames", "2", "--set", "sampling.density=1", "--set", "geometry.tau=0.3",
+                             "--set", "sampling.passes=1"])
     assert r.exit_code == 0, r.output
     s = json.loads((rep / "report.json").read_text())
-    assert s["config"]["tau"] == 0.3 and s["sampling"] == {"density": 1.0, "points": 1024, "keypoints":
+    assert s["config"]["tau"] == 0.3 and s["sampling"] == {"density": 1.0, "passes": 1, "points": 1024, "keypoints":
                                                              trained.model_config.npoints[0]}
     for bad, word in (("geometry.depth_chek=false", "depth_check"), ("depth_check=false", "geometry.KEY"),
                       ("geometry.other_classes=abc", "number"), ("sampling.densty=2", "sampling.density"),
                       ("sampling.density=20", "[0.25, 8]"), ("sampling.density=abc", "number"),
+                      ("sampling.passes=0", "[1, 8]"), ("sampling.passes=1.5", "whole number"),
                       ("stage1.lr=0.1", "geometry, sampling and infer"), ("infer.verfy=8", "verify"),
                       ("infer.hypotheses=0", "at least 1")):
         r = run.invoke(det_app, ["eval", str(out / "model.pt"), str(labels), "--out", str(rep), "--set", bad])

@@ -513,3 +513,42 @@ def test_a_network_trained_without_colour_ignores_the_frame_colours(random_check
         assert np.array_equal(a.xyz, b.xyz)
         assert np.allclose(a.class_probs, b.class_probs, atol=1e-6) == same
         assert np.allclose(a.control_points, b.control_points, atol=1e-6) == same
+
+
+def test_sampling_passes_pool_samplings_and_each_pass_predicts_as_alone(random_checkpoint, label_file):
+    """With ``sampling.passes`` 2 stage 1 predicts on two samplings of the frame, in one batch: the first pass's rows
+    are the single pass's (same points, same predictions up to the batch's float rounding), the second's are the
+    network run alone on the draw of the seed sequence (seed, 1); every prediction sits on a frame point."""
+    from types import SimpleNamespace
+
+    import torch
+
+    from detector.checkpoint import load_checkpoint
+    from detector.stage1.dataset import inference_batch
+    from detector.stage1.predictor import network_predictor
+
+    one, two = load_checkpoint(random_checkpoint), load_checkpoint(random_checkpoint, sampling={"passes": 2})
+    assert (one.sampling["passes"], two.sampling["passes"]) == (1, 2)
+    with LabelFile(label_file) as lf:
+        feats = np.asarray(lf.frame(0).features, np.float32)
+    frame = SimpleNamespace(features=feats)
+    a, b = network_predictor(one, 3)(frame), network_predictor(two, 3)(frame)
+    k = len(a.xyz)
+    assert len(b.xyz) == 2 * k and b.class_probs.shape == (2 * k, a.class_probs.shape[1])
+    assert b.control_points.shape == (2 * k, 9, 3) and b.confidence.shape == (2 * k,)
+    assert np.array_equal(a.xyz, b.xyz[:k])
+    for x, y in ((a.class_probs, b.class_probs[:k]), (a.control_points, b.control_points[:k]),
+                 (a.confidence, b.confidence[:k])):
+        assert np.allclose(x, y, atol=1e-5)
+    # the second pass alone: its own draw through the network, mapped back to the frame's points
+    batch = inference_batch(feats, one.model_config, one.num_points, [3, 1], normalisation=one.normalisation or None,
+                            plane_keep=one.plane_keep)
+    rows = batch.pop("point_index").numpy()
+    with torch.no_grad():
+        out = one.model(batch.pop("features"), batch)
+    second = feats[rows[out["keypoints"][0].numpy()], :3].astype(np.float64)
+    assert np.array_equal(b.xyz[k:], second) and not np.array_equal(b.xyz[k:], b.xyz[:k])
+    assert np.allclose(b.class_probs[k:], torch.softmax(out["logits"][0].float(), -1).numpy(), atol=1e-5)
+    assert np.allclose(b.control_points[k:] - b.xyz[k:, None], out["offsets"][0].double().numpy(), atol=1e-5)
+    on_frame = {tuple(p) for p in feats[:, :3].astype(np.float64)}
+    assert all(tuple(p) in on_frame for p in b.xyz)

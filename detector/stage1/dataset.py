@@ -115,12 +115,13 @@ class PointDataset(FrameSource):
         return item
 
 
-def inference_batch(features: np.ndarray, model_cfg, num_points: int, seed: int = 0,
+def inference_batch(features: np.ndarray, model_cfg, num_points: int, seed: int | Sequence[int] = 0,
                     normalisation: dict[str, float] | None = None, precompute: bool = True,
                     plane_keep: float = 1.0) -> dict[str, torch.Tensor]:
     """A batch of one frame for prediction: the same sampling as training, without augmentation.
 
-    features: (N, 9) float32 [X, Y, Z, R, G, B, Nx, Ny, Nz], metres and colour in [0, 1].
+    features: (N, 9) float32 [X, Y, Z, R, G, B, Nx, Ny, Nz], metres and colour in [0, 1]; seed: of the draw
+    (``numpy.random.default_rng``'s: an int or a sequence of ints).
     Returns ``features`` (1, num_points, 9), the sampling indices (each with a batch dimension) and
     ``point_index`` (num_points,) int64: the input row of each network point. ``precompute=False`` leaves
     the indices out (for a model that computes them on the GPU); ``plane_keep``: as the model was trained

@@ -5,6 +5,7 @@ GPU; :func:`oracle_predictor` returns the frame's ground-truth labels (checks th
 from __future__ import annotations
 
 import time
+from concurrent.futures import ThreadPoolExecutor
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
@@ -63,30 +64,45 @@ def network_predictor(checkpoint, seed: int = 0, device: str | None = None) -> P
 
     Sampling and neighbour indices as in training (``detector.stage1.dataset.inference_batch``); times "sampling" and
     "network" (synchronised on GPU). On a GPU the neighbour indices are computed by the model (inside "network").
+    With the checkpoint's ``sampling["passes"]`` P > 1 the frame is sampled P times (pass 0 with ``seed``, as a
+    single pass; pass k with the seed sequence (seed, k)), the samplings are drawn in two threads and go through the
+    network as one batch of P, and the predictions are concatenated in pass order (P x K rows).
     """
     model = checkpoint.model
     dev = torch.device(device) if device else next(model.parameters()).device
     model.to(dev).eval()
+    passes = int((getattr(checkpoint, "sampling", None) or {}).get("passes", 1))
+    seeds = [seed] + [[seed, k] for k in range(1, passes)]
 
     def predict(frame) -> Predictions:
         t0 = time.perf_counter()
-        batch = inference_batch(frame.features, checkpoint.model_config, checkpoint.num_points, seed,
-                                normalisation=checkpoint.normalisation or None, precompute=dev.type == "cpu",
-                                plane_keep=checkpoint.plane_keep)
-        feats = batch.pop("features").to(dev)
-        rows = batch.pop("point_index").numpy()
-        indices = {k: v.to(dev) for k, v in batch.items()}
+
+        def draw(pass_seed):
+            return inference_batch(frame.features, checkpoint.model_config, checkpoint.num_points, pass_seed,
+                                   normalisation=checkpoint.normalisation or None, precompute=dev.type == "cpu",
+                                   plane_keep=checkpoint.plane_keep)
+
+        if passes == 1:
+            batches = [draw(seed)]
+        else:  # the indices' FPS and k-d trees run outside the GIL: two samplings at a time
+            with ThreadPoolExecutor(2) as pool:
+                batches = list(pool.map(draw, seeds))
+        rows = [b.pop("point_index").numpy() for b in batches]
+        batch = {k: torch.cat([b[k] for b in batches]).to(dev) for k in batches[0]}
+        feats = batch.pop("features")
         t1 = time.perf_counter()
         with torch.no_grad():
-            out = model(feats, indices or None)
+            out = model(feats, batch or None)
             if dev.type == "cuda":
                 torch.cuda.synchronize(dev)
         t2 = time.perf_counter()
-        kp = out["keypoints"][0].cpu().numpy()
-        xyz = np.asarray(frame.features, np.float64)[rows[kp], :3]  # metres, exactly the input points
-        offsets = out["offsets"][0].double().cpu().numpy()
-        return Predictions(xyz, torch.softmax(out["logits"][0].float(), -1).cpu().numpy(), list(checkpoint.class_ids),
-                           xyz[:, None, :] + offsets, out["confidence"][0].double().cpu().numpy(),
+        kp = out["keypoints"].cpu().numpy()
+        points = np.asarray(frame.features, np.float64)
+        xyz = np.concatenate([points[r[k], :3] for r, k in zip(rows, kp)])  # metres, exactly the input points
+        offsets = out["offsets"].double().cpu().numpy().reshape(len(xyz), *out["offsets"].shape[2:])
+        probs = torch.softmax(out["logits"].float(), -1).cpu().numpy().reshape(len(xyz), -1)
+        return Predictions(xyz, probs, list(checkpoint.class_ids), xyz[:, None, :] + offsets,
+                           out["confidence"].double().cpu().numpy().reshape(len(xyz)),
                            {"sampling": t1 - t0, "network": t2 - t1})
 
     return predict

@@ -17,11 +17,15 @@ mkdir -p "$OUT"
 # The studies of RESULTS.md made on the previous lm8.pt (stage 2 18000 steps, the stages one after the other) use its
 # run, runs/lm8_prev: train_previous trains it (about 57 minutes on 2 cores) unless its model.pt exists
 P=runs/lm8_prev
+# Those studies, and every run of steps 7-9, were measured with stage 1 sampling a frame once and a centre from 3
+# votes (the inference before 2026-12-06; the default is now two passes and 5 votes): their model files keep it
+PRIOR=(--set sampling.passes=1 --set geometry.min_votes=3)
 train_previous() {
   if [ -f "$P/two_stage.yaml" ] && [ ! -f "$P/model.pt" ]; then
-    $D train "$OUT/lm_train.h5" --out "$P" --resume --quiet
+    $D train "$OUT/lm_train.h5" --out "$P" --resume "${PRIOR[@]}" --quiet
   elif [ ! -f "$P/model.pt" ]; then
-    $D train "$OUT/lm_train.h5" --out "$P" --set stage2.keep_every=3000 --set stage2.narrow_steps=0 --quiet
+    $D train "$OUT/lm_train.h5" --out "$P" --set stage2.keep_every=3000 --set stage2.narrow_steps=0 "${PRIOR[@]}" \
+      --quiet
   fi
 }
 # train_beside KEEP RUN YAML: the run folder RUN holds a copy of runs/lm8_prev's finished stage KEEP (stage1 or
@@ -33,7 +37,7 @@ train_beside() {
     train_previous
     [ -d "$r/$keep" ] || { mkdir -p "$r" && cp -r "$P/$keep" "$r/"; }
     printf '%s\n' "$yaml" > "$r/two_stage.yaml"
-    $D train "$OUT/lm_train.h5" --set stage2.narrow_steps=0 --out "$r" --resume --quiet
+    $D train "$OUT/lm_train.h5" --set stage2.narrow_steps=0 "${PRIOR[@]}" --out "$r" --resume --quiet
   fi
 }
 # eval_run RUN LABELS REPORT "KEY=VALUE ..." [EVAL OPTIONS]: RUN's detector eval --icp with those --set values into
@@ -69,6 +73,8 @@ false_alarms() {
   fi
 }
 
+G=geometry
+
 # 1. simulated AR captures (BOP format); seeds differ between train, validation and test
 $A capture-sim --scene linemod --models "$M" --frames 2000 --seed 1 --workers 2 --out "$OUT/lm_train" --quiet
 $A capture-sim --scene linemod --models "$M" --frames 300  --seed 2 --workers 2 --out "$OUT/lm_test"  --quiet
@@ -93,9 +99,11 @@ if [ -f runs/lm8/two_stage.yaml ] && ! grep -q "seed: 1" runs/lm8/two_stage.yaml
     "to reports/lm8prev_*, then run this again" >&2
   exit 1
 fi
-if [ -f runs/lm8/two_stage.yaml ] && [ ! -f runs/lm8/model.pt ]; then
+#    A run folder made before is resumed, finished or not: a finished one's model.pt is written again (in seconds)
+#    with the inference settings of today's defaults (detector/presets/two-stage.yaml: stage 1's two sampling passes)
+if [ -f runs/lm8/two_stage.yaml ]; then
   $D train "$OUT/lm_train.h5" --out runs/lm8 --resume --quiet
-elif [ ! -f runs/lm8/model.pt ]; then
+else
   $D train "$OUT/lm_train.h5" --out runs/lm8 --set stage1.seed=1 --set stage2.steps=24000 --set stage2.keep_every=3000 \
     --quiet
 fi
@@ -112,6 +120,25 @@ for seed in 0 1 2 3; do
   for d in lm_val lchf_val; do eval_run runs/lm8 "$OUT/$d.h5" "reports/lm8_${d}_seed$seed" "" --seed $seed; done
 done
 
+# 4a. lm8.pt's inference (RESULTS.md, "Two sampling passes"): the same weights with one sampling pass and a centre
+#     from 3 votes (its inference until 2026-12-06), also from 2 votes, also with a third crop (`infer.recentre=2`),
+#     and two passes with a centre from 4 or 6 votes, on the validation captures with sampling seeds 0-3 and on the
+#     real frames without LineMOD objects; one pass also on the test captures
+ONEPASS="sampling.passes=1 $G.min_votes=3"
+for a in "onepass:$ONEPASS" "onepass_votes2:sampling.passes=1 $G.min_votes=2" \
+         "onepass_recentre2:$ONEPASS infer.recentre=2" "votes4:$G.min_votes=4" "votes6:$G.min_votes=6"; do
+  for seed in 0 1 2 3; do
+    for d in lm_val lchf_val; do
+      eval_run runs/lm8 "$OUT/$d.h5" "reports/lm8_${a%%:*}_${d}_seed$seed" "${a#*:}" --seed $seed
+    done
+  done
+  sets=(); for kv in ${a#*:}; do sets+=(--set "$kv"); done
+  false_alarms runs/lm8/model.pt "${sets[@]}"
+done
+for d in lm_test:test lchf_test:lchf; do
+  eval_run runs/lm8 "$OUT/${d%%:*}.h5" "reports/lm8_onepass_${d#*:}" "$ONEPASS"
+done
+
 # 4b. the studies of RESULTS.md made on the previous lm8.pt (runs/lm8_prev: train_previous, above), only with
 #     PREVIOUS=1: its test captures, and without the depth check and the other classes (the inference made for real
 #     frames); ICP as before its half-turn starts, the half turns with 30 ICP iterations, a stage-1 centre from 2
@@ -122,7 +149,6 @@ done
 #     (`infer.roll_deg=15`) on the validation captures with sampling seeds 0-3, and the model as it is with seeds 1-3
 #     ("Stage 2's subsets rolled apart"; step 9 scores the seeds too); the time-to-accuracy curve (each kept stage-2
 #     snapshot with stage 1, on the test set: docs/img)
-G=geometry
 STRICT="$G.depth_consistent_refined=0.95"
 if [ "${PREVIOUS:-0}" = 1 ]; then
   train_previous
@@ -244,7 +270,7 @@ if [ "${SIDE_BY_SIDE:-0}" = 1 ]; then
   for s in 21000 24000; do
     r=runs/lm8_sbs${s%000}
     [ -f "$r/model.pt" ] || $D train "$OUT/lm_train.h5" --out "$r" --set stage2.steps=$s --set stage2.keep_every=3000 \
-      --quiet $([ -f "$r/two_stage.yaml" ] && echo --resume)
+      "${PRIOR[@]}" --quiet $([ -f "$r/two_stage.yaml" ] && echo --resume)
     eval_captures "$r"
     false_alarms "$r/model.pt"
   done
@@ -253,7 +279,7 @@ if [ "${SIDE_BY_SIDE:-0}" = 1 ]; then
   if [ ! -f "$r/model.pt" ]; then
     mkdir -p "$r" && rm -rf "$r/stage1" "$r/stage2" && cp -r $P/stage1 runs/lm8_sbs24/stage2 "$r/"
     printf 'stage2:\n  steps: 24000\n  keep_every: 3000\n' > "$r/two_stage.yaml"
-    $D train "$OUT/lm_train.h5" --out "$r" --resume --quiet
+    $D train "$OUT/lm_train.h5" --out "$r" --resume "${PRIOR[@]}" --quiet
   fi
   # stage 1 with seed 2 alone on one thread (as side by side: the stage-2 run is finished) beside the same stage 2
   r=runs/lm8_sbs24_s1seed2
@@ -261,7 +287,7 @@ if [ "${SIDE_BY_SIDE:-0}" = 1 ]; then
     mkdir -p "$r/stage2" && cp runs/lm8_sbs24/stage2/{config.yaml,last.pt,metrics.csv} "$r/stage2/"
     cp runs/lm8_sbs24/two_stage.yaml "$r/"
     $D train "$OUT/lm_train.h5" --out "$r" --resume --set stage1.seed=2 --set stage2.steps=24000 \
-      --set stage2.keep_every=3000 --quiet
+      --set stage2.keep_every=3000 "${PRIOR[@]}" --quiet
   fi
   for m in lm8-s2-24000 lm8_sbs24_s1seed2; do
     eval_captures runs/$m
