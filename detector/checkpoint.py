@@ -83,9 +83,11 @@ class SamplingConfig:
             raise DetectorError(f"sampling.density must be a number, got {self.density!r}") from None
         if not 0.25 <= self.density <= 8:
             raise DetectorError(f"sampling.density must be in [0.25, 8], got {self.density}")
-        whole = isinstance(self.passes, (int, float)) and not isinstance(self.passes, bool)
-        if not whole or self.passes != int(self.passes):
-            raise DetectorError(f"sampling.passes must be a whole number, got {self.passes!r}")
+        try:
+            if isinstance(self.passes, (bool, str)) or float(self.passes) != int(self.passes):
+                raise TypeError
+        except (TypeError, ValueError, OverflowError):  # not a number, nan, inf, 1.5
+            raise DetectorError(f"sampling.passes must be a whole number, got {self.passes!r}") from None
         self.passes = int(self.passes)
         if not 1 <= self.passes <= 8:
             raise DetectorError(f"sampling.passes must be in [1, 8], got {self.passes}")

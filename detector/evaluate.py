@@ -62,7 +62,8 @@ def evaluate(predictor: Predictor, label_path: str | Path, out_dir: str | Path, 
     BOP19 Average Recall (``bop19``): the BOP CSV's poses scored on the BOP dataset the label file was made from
     (``bop_dataset``, default the label file's source dataset), the targets of the evaluated images only; skipped
     with the reason in summary["bop19"]["skipped"] when that folder is gone or cannot be scored. sampling: how the
-    predictor's network sampled a frame (e.g. ``{"density": 1.0, "points": 4096, "keypoints": 1024}``), recorded
+    predictor's network sampled a frame (e.g. ``{"density": 1.0, "passes": 2, "points": 4096, "keypoints": 1024}``:
+    points and keypoints of each pass), recorded
     as summary["sampling"] (None: not recorded).
     Returns the summary written to report.json (per-object ADD accuracies at 10/15/30 % without and with ICP,
     F1 at 15 %, mean ms per stage, fps, and with ICP how many detections had their ICP pose accepted, rejected

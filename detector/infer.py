@@ -167,7 +167,8 @@ def split_sets(sets: list[str] | None) -> tuple[list[str], dict, dict]:
             geometry.append(pair)
         else:
             raise DetectorError(f"--set {key}: eval and predict take geometry, sampling and infer settings only "
-                                "(--set geometry.KEY=VALUE, --set sampling.density=VALUE, --set infer.KEY=VALUE)")
+                                "(--set geometry.KEY=VALUE, --set sampling.density=VALUE, --set sampling.passes=N, "
+                                "--set infer.KEY=VALUE)")
     return geometry, sampling, infer
 
 

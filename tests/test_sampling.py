@@ -26,7 +26,7 @@ def test_density_scales_counts_to_multiples_of_64_and_one_keeps_them():
         with pytest.raises(DetectorError):
             SamplingConfig(bad)
     assert SamplingConfig().passes == 1 and SamplingConfig(passes=3.0).passes == 3
-    for bad in (0, 9, 1.5, True, "2", None):
+    for bad in (0, 9, 1.5, True, "2", None, float("nan"), float("inf")):
         with pytest.raises(DetectorError, match="sampling.passes"):
             SamplingConfig(passes=bad)
     with pytest.raises(DetectorError, match="unknown sampling option 'points'"):

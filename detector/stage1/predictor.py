@@ -5,8 +5,8 @@ GPU; :func:`oracle_predictor` returns the frame's ground-truth labels (checks th
 from __future__ import annotations
 
 import time
-from concurrent.futures import ThreadPoolExecutor
 from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 
 import numpy as np

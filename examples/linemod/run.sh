@@ -41,12 +41,13 @@ train_beside() {
   fi
 }
 # eval_run RUN LABELS REPORT "KEY=VALUE ..." [EVAL OPTIONS]: RUN's detector eval --icp with those --set values into
-# the folder REPORT, unless it holds a report
+# the folder REPORT, unless it holds a report that records its sampling passes (one written before 2026-12-06 does
+# not, and may be of runs/lm8's one-pass inference of then: it is made again)
 eval_run() {
   local r=$1 data=$2 rep=$3 kv sets=()
   for kv in $4; do sets+=(--set "$kv"); done
   shift 4
-  [ -f "$rep/report.json" ] || $D eval "$r/model.pt" "$data" --out "$rep" --icp --quiet "${sets[@]}" "$@"
+  grep -qs '"passes"' "$rep/report.json" || $D eval "$r/model.pt" "$data" --out "$rep" --icp --quiet "${sets[@]}" "$@"
 }
 # eval_captures RUN [SUFFIX EVAL OPTIONS...]: RUN/model.pt with ICP on both test and both validation captures, into
 # reports/NAME-CAPTURE (NAME: RUN's folder name, then SUFFIX), each report once (steps 7-9)
@@ -123,7 +124,7 @@ done
 # 4a. lm8.pt's inference (RESULTS.md, "Two sampling passes"): the same weights with one sampling pass and a centre
 #     from 3 votes (its inference until 2026-12-06), also from 2 votes, also with a third crop (`infer.recentre=2`),
 #     and two passes with a centre from 4 or 6 votes, on the validation captures with sampling seeds 0-3 and on the
-#     real frames without LineMOD objects; one pass also on the test captures
+#     real frames without LineMOD objects; one pass also on the test captures (seeds 0-1 and 0-2)
 ONEPASS="sampling.passes=1 $G.min_votes=3"
 for a in "onepass:$ONEPASS" "onepass_votes2:sampling.passes=1 $G.min_votes=2" \
          "onepass_recentre2:$ONEPASS infer.recentre=2" "votes4:$G.min_votes=4" "votes6:$G.min_votes=6"; do
@@ -138,6 +139,8 @@ done
 for d in lm_test:test lchf_test:lchf; do
   eval_run runs/lm8 "$OUT/${d%%:*}.h5" "reports/lm8_onepass_${d#*:}" "$ONEPASS"
 done
+eval_run runs/lm8 "$OUT/lm_test.h5" reports/lm8_onepass_test_seed1 "$ONEPASS" --seed 1
+for seed in 1 2; do eval_run runs/lm8 "$OUT/lchf_test.h5" reports/lm8_onepass_lchf_seed$seed "$ONEPASS" --seed $seed; done
 
 # 4b. the studies of RESULTS.md made on the previous lm8.pt (runs/lm8_prev: train_previous, above), only with
 #     PREVIOUS=1: its test captures, and without the depth check and the other classes (the inference made for real

@@ -64,7 +64,8 @@ S2STEPS=${S2STEPS:-4000}
 SETS=(--set stage1.colour=none --set stage1.plane_keep=0.1 --set stage2.crop.colour=$S2COLOUR
       --set stage2.steps=$S2STEPS --set stage2.keep_every=2000 --set stage2.narrow_steps=0 "${INFER[@]}")
 if [ -f "$RUN/two_stage.yaml" ] && [ ! -f "$RUN/model.pt" ]; then
-  step train $D train "$OUT/ycbv_train.h5" --stage1-data "$OUT/ycbv_stage1.h5" --out "$RUN" --resume --quiet
+  step train $D train "$OUT/ycbv_train.h5" --stage1-data "$OUT/ycbv_stage1.h5" --out "$RUN" --resume "${INFER[@]}" \
+    --quiet
 elif [ ! -f "$RUN/model.pt" ]; then
   step train $D train "$OUT/ycbv_train.h5" --stage1-data "$OUT/ycbv_stage1.h5" --out "$RUN" "${SETS[@]}" --quiet
 fi
