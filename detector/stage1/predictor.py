@@ -83,7 +83,7 @@ def network_predictor(checkpoint, seed: int = 0, device: str | None = None) -> P
                                    plane_keep=checkpoint.plane_keep)
 
         if passes == 1:
-            batches = [draw(seed)]
+            batches = [draw(seeds[0])]
         else:  # the indices' FPS and k-d trees run outside the GIL: two samplings at a time
             with ThreadPoolExecutor(2) as pool:
                 batches = list(pool.map(draw, seeds))
@@ -97,8 +97,9 @@ def network_predictor(checkpoint, seed: int = 0, device: str | None = None) -> P
                 torch.cuda.synchronize(dev)
         t2 = time.perf_counter()
         kp = out["keypoints"].cpu().numpy()
-        points = np.asarray(frame.features, np.float64)
-        xyz = np.concatenate([points[r[k], :3] for r, k in zip(rows, kp)])  # metres, exactly the input points
+        # metres, exactly the input points; only the predicted rows are made float64, not the whole frame
+        points = np.asarray(frame.features)
+        xyz = np.concatenate([points[r[k], :3] for r, k in zip(rows, kp)]).astype(np.float64)
         offsets = out["offsets"].double().cpu().numpy().reshape(len(xyz), *out["offsets"].shape[2:])
         probs = torch.softmax(out["logits"].float(), -1).cpu().numpy().reshape(len(xyz), -1)
         return Predictions(xyz, probs, list(checkpoint.class_ids), xyz[:, None, :] + offsets,

@@ -17,9 +17,13 @@ mkdir -p "$OUT"
 # The studies of RESULTS.md made on the previous lm8.pt (stage 2 18000 steps, the stages one after the other) use its
 # run, runs/lm8_prev: train_previous trains it (about 57 minutes on 2 cores) unless its model.pt exists
 P=runs/lm8_prev
+# sets_of "KEY=VALUE ...": those settings as --set options, into the array SETS
+sets_of() { SETS=(); local kv; for kv in $1; do SETS+=(--set "$kv"); done; }
 # Those studies, and every run of steps 7-9, were measured with stage 1 sampling a frame once and a centre from 3
-# votes (the inference before 2026-12-06; the default is now two passes and 5 votes): their model files keep it
-PRIOR=(--set sampling.passes=1 --set geometry.min_votes=3)
+# votes (ONEPASS: the inference before 2026-12-06; the default is now two passes and 5 votes): their model files keep
+# it (PRIOR, at training)
+ONEPASS="sampling.passes=1 geometry.min_votes=3"
+sets_of "$ONEPASS"; PRIOR=("${SETS[@]}")
 train_previous() {
   if [ -f "$P/two_stage.yaml" ] && [ ! -f "$P/model.pt" ]; then
     $D train "$OUT/lm_train.h5" --out "$P" --resume "${PRIOR[@]}" --quiet
@@ -44,10 +48,10 @@ train_beside() {
 # the folder REPORT, unless it holds a report that records its sampling passes (one written before 2026-12-06 does
 # not, and may be of runs/lm8's one-pass inference of then: it is made again)
 eval_run() {
-  local r=$1 data=$2 rep=$3 kv sets=()
-  for kv in $4; do sets+=(--set "$kv"); done
+  local r=$1 data=$2 rep=$3
+  sets_of "$4"
   shift 4
-  grep -qs '"passes"' "$rep/report.json" || $D eval "$r/model.pt" "$data" --out "$rep" --icp --quiet "${sets[@]}" "$@"
+  grep -qs '"passes"' "$rep/report.json" || $D eval "$r/model.pt" "$data" --out "$rep" --icp --quiet "${SETS[@]}" "$@"
 }
 # eval_captures RUN [SUFFIX EVAL OPTIONS...]: RUN/model.pt with ICP on both test and both validation captures, into
 # reports/NAME-CAPTURE (NAME: RUN's folder name, then SUFFIX), each report once (steps 7-9)
@@ -125,7 +129,6 @@ done
 #     from 3 votes (its inference until 2026-12-06), also from 2 votes, also with a third crop (`infer.recentre=2`),
 #     and two passes with a centre from 4 or 6 votes, on the validation captures with sampling seeds 0-3 and on the
 #     real frames without LineMOD objects; one pass also on the test captures (seeds 0-1 and 0-2)
-ONEPASS="sampling.passes=1 $G.min_votes=3"
 for a in "onepass:$ONEPASS" "onepass_votes2:sampling.passes=1 $G.min_votes=2" \
          "onepass_recentre2:$ONEPASS infer.recentre=2" "votes4:$G.min_votes=4" "votes6:$G.min_votes=6"; do
   for seed in 0 1 2 3; do
@@ -133,8 +136,8 @@ for a in "onepass:$ONEPASS" "onepass_votes2:sampling.passes=1 $G.min_votes=2" \
       eval_run runs/lm8 "$OUT/$d.h5" "reports/lm8_${a%%:*}_${d}_seed$seed" "${a#*:}" --seed $seed
     done
   done
-  sets=(); for kv in ${a#*:}; do sets+=(--set "$kv"); done
-  false_alarms runs/lm8/model.pt "${sets[@]}"
+  sets_of "${a#*:}"
+  false_alarms runs/lm8/model.pt "${SETS[@]}"
 done
 for d in lm_test:test lchf_test:lchf; do
   eval_run runs/lm8 "$OUT/${d%%:*}.h5" "reports/lm8_onepass_${d#*:}" "$ONEPASS"
