@@ -22,11 +22,16 @@ from detector.geometry.colour_check import colour_checked
 from detector.geometry.icp import refine
 from detector.geometry.part_check import part_checked
 from detector.geometry.types import Detection, GeometryConfig, ObjectInfo
-from detector.geometry.verify import depth_checked, range_image
+from detector.geometry.verify import depth_checked, pose_consistency, range_image
 from detector.geometry.voting import detect, nms, other_classes
 from detector.stage1.predictor import Predictions
 from detector.stage2.crops import CropConfig
 from detector.stage2.poser import CropPoser, PoserConfig, RETIRED_INFER_KEYS
+
+
+#: The model points on which the frame's depth chooses among a detection's ICP results (at most about this many:
+#: its cost grows with them; the depth check itself measures on all of them).
+CHOICE_POINTS = 250
 
 
 def estimate(preds: Predictions, objects: ObjectInfo, cfg: GeometryConfig, timings: dict | None = None,
@@ -51,7 +56,9 @@ def estimate(preds: Predictions, objects: ObjectInfo, cfg: GeometryConfig, timin
     cloud, an object with a part symmetry is turned about its axis to where the frame's depth allows its odd part
     (:func:`detector.geometry.part_check.part_checked`): the poses after ICP, and the unrefined ones once ICP has
     started from them as they were (from a half-turned start ICP sometimes finds the turn itself, and a check before
-    it would move such poses away: RESULTS.md). Adds "depth_check" seconds (the range image's too).
+    it would move such poses away: RESULTS.md). With ``cfg.icp_depth_margin`` and a cloud, the frame's depth also
+    chooses among each detection's ICP results (:func:`detector.geometry.icp.chosen_result`). Adds "depth_check"
+    seconds (the range image's too).
     """
     dets = detect(preds.xyz, preds.obj_ids, preds.confidence, preds.control_points, objects, cfg, timings)
     if poser is not None:
@@ -60,7 +67,8 @@ def estimate(preds: Predictions, objects: ObjectInfo, cfg: GeometryConfig, timin
         dets = poser(dets, features, timings)
     t0 = time.perf_counter()
     parts = cfg.part_check and cloud is not None and bool(objects.part_symmetries)
-    frame = range_image(cloud) if (cfg.depth_check or parts) and cloud is not None else None
+    choose = cfg.icp and cfg.icp_depth_margin is not None
+    frame = range_image(cloud) if (cfg.depth_check or parts or choose) and cloud is not None else None
     if frame is not None and cfg.depth_check:
         dets = depth_checked(dets, frame, objects, cfg)
     t_check = time.perf_counter() - t0
@@ -69,7 +77,9 @@ def estimate(preds: Predictions, objects: ObjectInfo, cfg: GeometryConfig, timin
     lo = cfg.min_score if cfg.min_score_unrefined is None else cfg.min_score_unrefined
     dets = [d for d in dets if d.score >= lo or not d.other_class]  # a weak other-class copy is not worth an ICP
     colours = features[:, 3:6] if cfg.colour_check and features is not None and objects.texture else None
-    refined = refine(dets, preds.xyz, objects, cfg, timings, cloud) if cfg.icp else None
+    consistency = (lambda oid, R, t: pose_consistency(frame, objects, cfg, oid, R, t, CHOICE_POINTS)) \
+        if choose and frame is not None else None
+    refined = refine(dets, preds.xyz, objects, cfg, timings, cloud, consistency) if cfg.icp else None
     if colours is not None:
         dets = colour_checked(dets, cloud, colours, objects, cfg, icp=False, timings=timings)
         if refined is not None:
@@ -147,6 +157,9 @@ def geometry_config(tau: float, icp: bool, base: GeometryConfig | None = None) -
     """A GeometryConfig from CLI options, checked; ``base`` gives the other settings."""
     if not 0 <= tau <= 1:
         raise DetectorError(f"--tau must be in [0, 1], got {tau}")
+    margin = (base or GeometryConfig()).icp_depth_margin
+    if margin is not None and not 0 <= margin <= 1:
+        raise DetectorError(f"geometry.icp_depth_margin is a consistency margin in [0, 1] or null, got {margin}")
     return replace(base or GeometryConfig(), tau=tau, icp=icp)
 
 

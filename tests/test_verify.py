@@ -1,11 +1,19 @@
-"""detector.geometry.verify: the depth check on an exact synthetic frame (a box standing out of a wall)."""
+"""detector.geometry.verify: the depth check on exact synthetic frames (a box standing out of a wall; a box with a
+hidden arm, where the depth chooses among ICP's results)."""
+
+from dataclasses import replace
 
 import numpy as np
 import pytest
 import trimesh
+from scipy.spatial.transform import Rotation
 
+from detector.config import apply_set_options, parse_set_options
+from detector.errors import DetectorError
+from detector.geometry.icp import chosen_result, refine, turned_poses
 from detector.geometry.types import Detection, GeometryConfig, ObjectInfo
-from detector.geometry.verify import depth_checked, depth_consistency, range_image
+from detector.geometry.verify import depth_checked, depth_consistency, pose_consistency, range_image
+from detector.infer import geometry_config
 
 K = np.array([[500.0, 0, 160], [0, 500.0, 120], [0, 0, 1]])
 SIZE = (0.10, 0.08, 0.05)  # the box, metres: its front face 5 cm in front of a wall 1 m away
@@ -91,3 +99,82 @@ def test_refined_poses_can_be_held_to_a_stricter_consistency():
     assert depth_checked([det], ri, objs, strict, refined=True)[0].score == pytest.approx(0.9 * c / 0.97)
     right = Detection(1, 0.9, np.eye(3), np.array([0, 0, 0.975]), 10, np.zeros((9, 3)), np.arange(3))
     assert depth_checked([right], ri, objs, strict, refined=True)[0].score == 0.9  # the right pose keeps its score
+
+
+# A box with an arm along its model +x, the arm hidden behind the box in the frame below.
+ARM_BOXES = [((-0.03, -0.06, -0.03), (0.03, 0.06, 0.03)), ((0.03, 0.02, -0.01), (0.09, 0.04, 0.01))]
+
+
+def arm_frame(R, t, w: int = 320, h: int = 240, f: float = 500.0, wall: float = 1.0):
+    """An exact depth image of the armed box at pose (R (3,3), t (3,) metres) in front of a wall ``wall`` metres
+    away, by ray casting against the two boxes: (the frame's cloud (w*h,3) metres, (w*h,) bool its object rays)."""
+    v, u = np.mgrid[0:h, 0:w]
+    d = np.stack([(u + 0.5 - w / 2) / f, (v + 0.5 - h / 2) / f, np.ones(u.shape)], -1).reshape(-1, 3)
+    z, hit = np.full(len(d), wall), np.zeros(len(d), bool)
+    o, dm = -R.T @ t, d @ R  # the rays in the model frame (z along a ray is its parameter: d has z = 1)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        for lo, hi in ARM_BOXES:
+            a, b = (np.array(lo) - o) / dm, (np.array(hi) - o) / dm
+            near, far = np.nanmax(np.minimum(a, b), 1), np.nanmin(np.maximum(a, b), 1)
+            ok = (near <= far) & (near > 0) & (near < z)
+            z[ok], hit[ok] = near[ok], True
+    return d * z[:, None], hit
+
+
+def test_the_depth_chooses_among_icp_results_that_fit_alike():
+    """The arm points away from the camera, so the frame shows the box alone. Turned half way about its upright
+    axis, the pose puts the arm in front of the box: its fit to the box's points is as good, and ICP from that
+    start ends there when the fit chooses. The frame's depth sees the box's face behind the arm, so with it
+    (``icp_depth_margin``) ICP ends on the right pose from every half-turned start."""
+    R = Rotation.from_euler("xyz", [-30, -90, 0], degrees=True).as_matrix()  # model +x (the arm) away from the camera
+    t = np.array([0.01, 0.0, 0.85])
+    cloud, hit = arm_frame(R, t)
+    mesh = trimesh.util.concatenate([trimesh.creation.box(bounds=np.array(b)) for b in ARM_BOXES])
+    model = np.asarray(mesh.sample(1000, seed=3), np.float64)
+    dia = float(np.linalg.norm(mesh.bounds[1] - mesh.bounds[0]))
+    objs = ObjectInfo({1: np.zeros((9, 3))}, {1: dia}, {1: model})
+    assert np.all((cloud[hit] - t) @ R[:, 0] < 0.031)  # no point of the arm is in the frame
+    frame = range_image(cloud)
+    cfg = GeometryConfig(icp=True, icp_points=256, icp_depth_margin=0.1)
+
+    def consistency(oid, Rs, ts):
+        return pose_consistency(frame, objs, cfg, oid, Rs, ts)
+
+    def add(r):
+        return float(np.linalg.norm(model @ r.R.T + r.t - (model @ R.T + t), axis=1).mean())
+
+    Rk, tk = turned_poses(R, t, objs.half_turns(1))
+    assert consistency(1, R[None], t[None])[0] > 0.99
+    assert np.all(consistency(1, Rk[1:], tk[1:]) < 0.8)
+    fit_alone = []
+    for k in (1, 2, 3):
+        d = Detection(1, 1.0, Rk[k], tk[k], int(hit.sum()), np.zeros((9, 3)), np.arange(int(hit.sum())),
+                      points=np.flatnonzero(hit))
+        (by_fit,) = refine([d], cloud, objs, replace(cfg, icp_depth_margin=None), cloud=cloud,
+                           consistency=consistency)
+        (by_depth,) = refine([d], cloud, objs, cfg, cloud=cloud, consistency=consistency)
+        fit_alone.append(add(by_fit))
+        assert by_depth.icp == "accepted" and add(by_depth) < 0.05 * dia
+    assert max(fit_alone) > 0.3 * dia  # the fit alone keeps a wrong pose from some start
+
+
+def test_the_choice_among_icp_results():
+    """The best fit among the results within the margin of the most consistent one; the first of equal fits; the
+    best fit of all without a consistency or a margin."""
+    fits = [0.001, 0.002, 0.003, 0.002]
+    assert chosen_result(fits, None, 0.1) == 0
+    assert chosen_result(fits, [0.5, 0.95, 1.0, 0.95], None) == 0
+    assert chosen_result(fits, [0.5, 0.95, 1.0, 0.95], 0.1) == 1
+    assert chosen_result(fits, [0.5, 0.95, 1.0, 0.95], 0.0) == 2
+    assert chosen_result(fits, [0.95, 0.95, 1.0, 0.95], 0.1) == 0
+
+
+@pytest.mark.parametrize("margin", ["-0.1", "1.5", "x"])
+def test_a_bad_depth_margin_is_refused(margin):
+    """eval's and predict's --set geometry.icp_depth_margin=M: a margin outside [0, 1] or not a number is a
+    one-line error; null and a margin within are taken."""
+    with pytest.raises(DetectorError, match="icp_depth_margin"):
+        geometry_config(0.5, True, apply_set_options(GeometryConfig(), parse_set_options([f"icp_depth_margin={margin}"])))
+    for ok, want in (("null", None), ("0.1", 0.1)):
+        cfg = apply_set_options(GeometryConfig(), parse_set_options([f"icp_depth_margin={ok}"]))
+        assert geometry_config(0.5, True, cfg).icp_depth_margin == want

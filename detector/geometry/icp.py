@@ -164,13 +164,30 @@ def icp_starts(obj_id: int, R: np.ndarray, t: np.ndarray, objects: ObjectInfo, c
     return distinct_poses(starts, objects.diameters[obj_id])
 
 
-def refine_poses(jobs: list, objects: ObjectInfo, cfg: GeometryConfig
+def chosen_result(fits: list[float], consistency: np.ndarray | None, margin: float | None) -> int:
+    """Which of a detection's ICP results is its candidate: fits (K,) their trimmed RMS (metres); consistency: (K,)
+    their depth consistency in [0, 1] (:func:`detector.geometry.verify.pose_consistency`) or None. The best fit
+    (the first of equal ones) among the results at most ``margin`` less consistent than the most consistent one;
+    the best fit of all without a consistency or a margin."""
+    fits = np.asarray(fits, np.float64)
+    if consistency is None or margin is None:
+        return int(np.argmin(fits))
+    consistency = np.asarray(consistency, np.float64)
+    ok = np.flatnonzero(consistency >= consistency.max() - max(margin, 0.0))
+    return int(ok[np.argmin(fits[ok])])
+
+
+def refine_poses(jobs: list, objects: ObjectInfo, cfg: GeometryConfig, consistency=None
                  ) -> list[tuple[np.ndarray, np.ndarray, bool, tuple[float, float]]]:
     """:func:`refine_pose` for several detections at once: jobs [(scene_points (S,3) camera metres, obj_id, R (3,3),
     t (3,), alternatives or None), ...]. Every job's ICP starts (:func:`icp_starts`) run side by side in one pool,
     so two cores stay busy across detections rather than idling at the end of each one's starts; each start's
     result is the same as alone (one thread inside each ICP), so the results equal calling :func:`refine_pose` on
-    each job. Returns one (R, t, accepted, (RMS before, RMS after)) per job, in their order."""
+    each job. consistency: a function (obj_id, R (K,3,3), t (K,3)) -> (K,) the frame's depth consistency of K poses
+    (:func:`detector.geometry.verify.pose_consistency` on the frame), which with ``cfg.icp_depth_margin`` chooses
+    among a detection's results (:func:`chosen_result`), and the chosen result is also kept when it is more than
+    that margin more consistent than the unrefined pose, whatever the fits; None: the best fit, kept when it fits
+    better by ``cfg.icp_min_gain``. Returns one (R, t, accepted, (RMS before, RMS after)) per job, in their order."""
     flat = []  # (job index, start)
     for j, (_, oid, R, t, alts) in enumerate(jobs):
         flat += [(j, s) for s in icp_starts(oid, R, t, objects, cfg, alts)]
@@ -196,9 +213,14 @@ def refine_poses(jobs: list, objects: ObjectInfo, cfg: GeometryConfig
         res = fit_residuals(pts, tree, normals, np.stack([r[0] for r in results]),
                             np.stack([r[1] for r in results]), gate)  # every start's result in one query
         fits = [fit_rms(r, cfg.icp_trim) for r in res]
-        k = int(np.argmin(fits))  # the first of equal fits
+        use = consistency is not None and cfg.icp_depth_margin is not None
+        cons = consistency(oid, np.stack([R] + [r[0] for r in results]), np.stack([t] + [r[1] for r in results])) \
+            if use else None
+        k = chosen_result(fits, None if cons is None else cons[1:], cfg.icp_depth_margin)
         after, (R1, t1) = fits[k], results[k]
-        if after < before - cfg.icp_min_gain * dia:
+        # kept when it fits better, or when the depth tells it from the pose it started from (which may fit as well)
+        clearer = cons is not None and cons[0] < cons[1 + k] - cfg.icp_depth_margin
+        if after < before - cfg.icp_min_gain * dia or clearer:
             out.append((R1, t1, True, (before, after)))
         else:
             out.append((np.asarray(R, np.float64), np.asarray(t, np.float64), False, (before, after)))
@@ -241,7 +263,7 @@ def icp_points(points: np.ndarray, cfg: GeometryConfig) -> np.ndarray:
 
 
 def refine(detections: list[Detection], xyz: np.ndarray, objects: ObjectInfo, cfg: GeometryConfig,
-           timings: dict | None = None, cloud: np.ndarray | None = None) -> list[Detection]:
+           timings: dict | None = None, cloud: np.ndarray | None = None, consistency=None) -> list[Detection]:
     """ICP-refined copies of ``detections`` using each one's scene points (metres).
 
     xyz: (K,3) the predicted points (``members`` index them); cloud: (M,3) the frame's full point cloud or None.
@@ -249,8 +271,10 @@ def refine(detections: list[Detection], xyz: np.ndarray, objects: ObjectInfo, cf
     scene points are the cloud points whose ``cfg.owner_votes`` nearest predicted
     points (within ``cfg.propagate``) are all its members (several times more points than the network's, and
     none next to points predicted as background or as another detection); else ``xyz[members]``. Each ICP pose
-    is kept only when it fits those points better (:func:`refine_pose`); the detection's ``icp`` says what
-    happened. Detections with fewer than ``cfg.icp_min_points`` scene points are "skipped". Adds "icp" seconds.
+    is kept only when it fits those points better, or the frame's depth agrees with it clearly better
+    (:func:`refine_poses`); the detection's ``icp`` says what
+    happened. Detections with fewer than ``cfg.icp_min_points`` scene points are "skipped". consistency: as
+    :func:`refine_poses` takes it (the frame's depth chooses among each detection's ICP results). Adds "icp" seconds.
     """
     t0 = time.perf_counter()
     propagate = cloud is not None and any(d.points is None for d in detections)  # a two-stage model's carry points
@@ -266,7 +290,7 @@ def refine(detections: list[Detection], xyz: np.ndarray, objects: ObjectInfo, cf
     todo = [k for k, pts in enumerate(points) if len(pts) >= cfg.icp_min_points]
     refined = dict(zip(todo, refine_poses([(icp_points(points[k], cfg), detections[k].obj_id, detections[k].R,
                                              detections[k].t, detections[k].alternatives) for k in todo],
-                                           objects, cfg)))
+                                           objects, cfg, consistency)))
     out = []
     for k, (d, pts) in enumerate(zip(detections, points)):
         if k not in refined:

@@ -32,7 +32,14 @@ class GeometryConfig:
     the simulated linemod test capture: the duck and the can turned about their upright axis); icp_min_gain: the ICP pose is kept
     only when it lowers that trimmed RMS by at least this fraction of the diameter (a smaller gain is within what
     the model's point sampling itself contributes, and on a few points of a smooth surface ICP can slide a right
-    pose by centimetres for such a gain); icp_points: ICP and its acceptance test use at most this many of a
+    pose by centimetres for such a gain); icp_depth_margin: which of a detection's ICP results is its candidate, where
+the frame's depth is at hand: of the results whose depth consistency (the depth check's measure,
+:func:`detector.geometry.verify.depth_consistency`) is within this of the most consistent one's, the best-fitting
+(None: the best-fitting of all). The trimmed fit leaves out the worst-fitting points, and those are where a
+half-turned pose shows its difference (a can's spout posed where the sensor sees the desk behind); the result is
+then also kept when it is more than this more consistent than the pose ICP started from. Not the default: on the
+simulated captures it found a few more poses and let a few more wrong ones through the depth check (RESULTS.md);
+icp_points: ICP and its acceptance test use at most this many of a
     detection's scene points, evenly spread over them (0 = all; their cost grows with the points, and a stage 2
     that pools several crop samples hands over several hundred), the score after ICP uses them all;
     propagate: metres, a frame point belongs to a detection when its ``owner_votes`` nearest predicted points
@@ -81,6 +88,7 @@ class GeometryConfig:
     icp_starts: int = 8
     icp_half_turns: bool = True
     icp_min_gain: float = 0.001
+    icp_depth_margin: float | None = None
     icp_points: int = 0
     support_distance: float = 0.02
     support_floor: float = 0.004

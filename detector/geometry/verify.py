@@ -100,20 +100,32 @@ def depth_votes(ri: RangeImage, model_points: np.ndarray, R: np.ndarray, t: np.n
     return seen, through
 
 
+def pose_consistency(frame: RangeImage, objects, cfg, obj_id: int, R: np.ndarray, t: np.ndarray,
+                     max_points: int | None = None) -> np.ndarray:
+    """:func:`depth_consistency` of K poses of object ``obj_id``, R (K,3,3), t (K,3) metres, with the depth check's
+    tolerances: ``cfg.depth_tolerance`` times the support distance (:func:`detector.geometry.icp.support_radius` of
+    ``cfg``, a :class:`detector.geometry.types.GeometryConfig`), the free-space margin twice that. objects: the
+    :class:`detector.geometry.types.ObjectInfo`; max_points: measure on at most about this many of its model points
+    (every k-th; None: all). Returns (K,) float64 in [0, 1]."""
+    tol = cfg.depth_tolerance * support_radius(cfg.support_distance, cfg.support_floor, objects.diameters[obj_id])
+    pts = objects.model_points[obj_id]
+    if max_points is not None and len(pts) > max_points:
+        pts = pts[::-(-len(pts) // max_points)]
+    return depth_consistency(frame, pts, R, t, tol, 2 * tol)
+
+
 def depth_checked(detections: list, frame: RangeImage, objects, cfg, refined: bool = False) -> list:
     """Copies of ``detections`` (:class:`detector.geometry.types.Detection`) whose scores fall with their depth
     consistency (:func:`depth_consistency`) in the frame's range image: a detection at least ``cfg.depth_consistent``
     consistent keeps its score, one below it is scaled by consistency / ``cfg.depth_consistent``; ``refined``: the
-    poses after ICP, held to ``cfg.depth_consistent_refined`` instead where that is set. The tolerance is
-    ``cfg.depth_tolerance`` times the support distance (:func:`detector.geometry.icp.support_radius` of ``cfg``), the
-    free-space margin twice that. objects: the :class:`detector.geometry.types.ObjectInfo`; cfg: the
+    poses after ICP, held to ``cfg.depth_consistent_refined`` instead where that is set. The tolerances are
+    :func:`pose_consistency`'s. objects: the :class:`detector.geometry.types.ObjectInfo`; cfg: the
     :class:`detector.geometry.types.GeometryConfig`."""
     need = cfg.depth_consistent_refined if refined and cfg.depth_consistent_refined is not None else \
         cfg.depth_consistent
     cons = np.zeros(len(detections))
     for oid in {d.obj_id for d in detections}:  # each object's poses in one pass
         rows = [k for k, d in enumerate(detections) if d.obj_id == oid]
-        tol = cfg.depth_tolerance * support_radius(cfg.support_distance, cfg.support_floor, objects.diameters[oid])
-        cons[rows] = depth_consistency(frame, objects.model_points[oid], np.stack([detections[k].R for k in rows]),
-                                       np.stack([detections[k].t for k in rows]), tol, 2 * tol)
+        cons[rows] = pose_consistency(frame, objects, cfg, oid, np.stack([detections[k].R for k in rows]),
+                                      np.stack([detections[k].t for k in rows]))
     return [replace(d, score=float(d.score * min(1.0, c / need))) for d, c in zip(detections, cons)]

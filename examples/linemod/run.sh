@@ -127,10 +127,12 @@ done
 
 # 4a. lm8.pt's inference (RESULTS.md, "Two sampling passes"): the same weights with one sampling pass and a centre
 #     from 3 votes (its inference until 2026-12-06), also from 2 votes, also with a third crop (`infer.recentre=2`),
-#     and two passes with a centre from 4 or 6 votes, on the validation captures with sampling seeds 0-3 and on the
-#     real frames without LineMOD objects; one pass also on the test captures (seeds 0-1 and 0-2)
+#     and two passes with a centre from 4 or 6 votes, and the frame's depth choosing among ICP's results (RESULTS.md,
+#     "The depth choosing among ICP's results"), on the validation captures with sampling seeds 0-3 and on the real
+#     frames without LineMOD objects; one pass and the depth's choice also on the test captures (seeds 0-1 and 0-2)
 for a in "onepass:$ONEPASS" "onepass_votes2:sampling.passes=1 $G.min_votes=2" \
-         "onepass_recentre2:$ONEPASS infer.recentre=2" "votes4:$G.min_votes=4" "votes6:$G.min_votes=6"; do
+         "onepass_recentre2:$ONEPASS infer.recentre=2" "votes4:$G.min_votes=4" "votes6:$G.min_votes=6" \
+         "icp_depth:$G.icp_depth_margin=0.1"; do
   for seed in 0 1 2 3; do
     for d in lm_val lchf_val; do
       eval_run runs/lm8 "$OUT/$d.h5" "reports/lm8_${a%%:*}_${d}_seed$seed" "${a#*:}" --seed $seed
@@ -144,6 +146,13 @@ for d in lm_test:test lchf_test:lchf; do
 done
 eval_run runs/lm8 "$OUT/lm_test.h5" reports/lm8_onepass_test_seed1 "$ONEPASS" --seed 1
 for seed in 1 2; do eval_run runs/lm8 "$OUT/lchf_test.h5" reports/lm8_onepass_lchf_seed$seed "$ONEPASS" --seed $seed; done
+for d in lm_test:test lchf_test:lchf; do
+  eval_run runs/lm8 "$OUT/${d%%:*}.h5" "reports/lm8_icp_depth_${d#*:}" "$G.icp_depth_margin=0.1"
+done
+eval_run runs/lm8 "$OUT/lm_test.h5" reports/lm8_icp_depth_test_seed1 "$G.icp_depth_margin=0.1" --seed 1
+for seed in 1 2; do
+  eval_run runs/lm8 "$OUT/lchf_test.h5" reports/lm8_icp_depth_lchf_seed$seed "$G.icp_depth_margin=0.1" --seed $seed
+done
 
 # 4b. the studies of RESULTS.md made on the previous lm8.pt (runs/lm8_prev: train_previous, above), only with
 #     PREVIOUS=1: its test captures, and without the depth check and the other classes (the inference made for real
