@@ -160,6 +160,9 @@ def geometry_config(tau: float, icp: bool, base: GeometryConfig | None = None) -
     margin = (base or GeometryConfig()).icp_depth_margin
     if margin is not None and not 0 <= margin <= 1:
         raise DetectorError(f"geometry.icp_depth_margin is a consistency margin in [0, 1] or null, got {margin}")
+    own = (base or GeometryConfig()).icp_own_margin
+    if not 0 <= own <= 1:
+        raise DetectorError(f"geometry.icp_own_margin is a share in [0, 1], got {own}")
     return replace(base or GeometryConfig(), tau=tau, icp=icp)
 
 

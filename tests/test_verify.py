@@ -167,9 +167,15 @@ def test_the_choice_among_icp_results():
     assert chosen_result(fits, [0.5, 0.95, 1.0, 0.95], 0.1) == 1
     assert chosen_result(fits, [0.5, 0.95, 1.0, 0.95], 0.0) == 2
     assert chosen_result(fits, [0.95, 0.95, 1.0, 0.95], 0.1) == 0
+    # the first result, from the detection's own pose, unless another fits better by more than ``own`` of its RMS
+    near = [0.00104, 0.001, 0.003]
+    assert chosen_result(near, None, None) == 1
+    assert chosen_result(near, None, None, own=0.05) == 0
+    assert chosen_result(near, None, None, own=0.03) == 1
+    assert chosen_result(near, [0.5, 1.0, 1.0], 0.1, own=0.05) == 1  # not where the depth ruled the first out
 
 
-@pytest.mark.parametrize("margin", ["-0.1", "1.5", "x"])
+@pytest.mark.parametrize("margin", ["-0.1", "1.5", "x", ".nan"])
 def test_a_bad_depth_margin_is_refused(margin):
     """eval's and predict's --set geometry.icp_depth_margin=M: a margin outside [0, 1] or not a number is a
     one-line error; null and a margin within are taken."""
@@ -178,3 +184,9 @@ def test_a_bad_depth_margin_is_refused(margin):
     for ok, want in (("null", None), ("0.1", 0.1)):
         cfg = apply_set_options(GeometryConfig(), parse_set_options([f"icp_depth_margin={ok}"]))
         assert geometry_config(0.5, True, cfg).icp_depth_margin == want
+
+
+@pytest.mark.parametrize("own", ["-0.1", "1.5", ".nan"])
+def test_a_bad_own_margin_is_refused(own):
+    with pytest.raises(DetectorError, match="icp_own_margin"):
+        geometry_config(0.5, True, apply_set_options(GeometryConfig(), parse_set_options([f"icp_own_margin={own}"])))

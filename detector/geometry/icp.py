@@ -164,17 +164,20 @@ def icp_starts(obj_id: int, R: np.ndarray, t: np.ndarray, objects: ObjectInfo, c
     return distinct_poses(starts, objects.diameters[obj_id])
 
 
-def chosen_result(fits: list[float], consistency: np.ndarray | None, margin: float | None) -> int:
-    """Which of a detection's ICP results is its candidate: fits (K,) their trimmed RMS (metres); consistency: (K,)
-    their depth consistency in [0, 1] (:func:`detector.geometry.verify.pose_consistency`) or None. The best fit
-    (the first of equal ones) among the results at most ``margin`` less consistent than the most consistent one;
-    the best fit of all without a consistency or a margin."""
+def chosen_result(fits: list[float], consistency: np.ndarray | None, margin: float | None, own: float = 0.0) -> int:
+    """Which of a detection's ICP results is its candidate: fits (K,) their trimmed RMS (metres), the first from the
+    detection's own pose (:func:`icp_starts`); consistency: (K,) their depth consistency in [0, 1]
+    (:func:`detector.geometry.verify.pose_consistency`) or None. The best fit (the first of equal ones) among the
+    results at most ``margin`` less consistent than the most consistent one, or among all without a consistency or
+    a margin; but the first result where it is among them and its RMS is at most ``1 + own`` times that best one's."""
     fits = np.asarray(fits, np.float64)
     if consistency is None or margin is None:
-        return int(np.argmin(fits))
-    consistency = np.asarray(consistency, np.float64)
-    ok = np.flatnonzero(consistency >= consistency.max() - max(margin, 0.0))
-    return int(ok[np.argmin(fits[ok])])
+        ok = np.arange(len(fits))
+    else:
+        consistency = np.asarray(consistency, np.float64)
+        ok = np.flatnonzero(consistency >= consistency.max() - max(margin, 0.0))
+    k = int(ok[np.argmin(fits[ok])])
+    return 0 if ok[0] == 0 and fits[0] <= fits[k] * (1.0 + own) else k
 
 
 def refine_poses(jobs: list, objects: ObjectInfo, cfg: GeometryConfig, consistency=None
@@ -216,7 +219,7 @@ def refine_poses(jobs: list, objects: ObjectInfo, cfg: GeometryConfig, consisten
         use = consistency is not None and cfg.icp_depth_margin is not None
         cons = consistency(oid, np.stack([R] + [r[0] for r in results]), np.stack([t] + [r[1] for r in results])) \
             if use else None
-        k = chosen_result(fits, None if cons is None else cons[1:], cfg.icp_depth_margin)
+        k = chosen_result(fits, None if cons is None else cons[1:], cfg.icp_depth_margin, cfg.icp_own_margin)
         after, (R1, t1) = fits[k], results[k]
         # kept when it fits better, or when the depth tells it from the pose it started from (which may fit as well)
         clearer = cons is not None and cons[0] < cons[1 + k] - cfg.icp_depth_margin

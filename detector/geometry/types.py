@@ -39,6 +39,9 @@ the frame's depth is at hand: of the results whose depth consistency (the depth 
 half-turned pose shows its difference (a can's spout posed where the sensor sees the desk behind); the result is
 then also kept when it is more than this more consistent than the pose ICP started from. Not the default: on the
 simulated captures it found a few more poses and let a few more wrong ones through the depth check (RESULTS.md);
+icp_own_margin: the result of ICP from the detection's own pose is its candidate unless another start's result fits
+better by more than this share of that RMS (0: the best fit wins): from a half-turned start ICP can end on the wrong
+way round of an object whose sides look alike, fitting the points a little better by chance (the sensor's noise);
 icp_points: ICP and its acceptance test use at most this many of a
     detection's scene points, evenly spread over them (0 = all; their cost grows with the points, and a stage 2
     that pools several crop samples hands over several hundred), the score after ICP uses them all;
@@ -89,6 +92,7 @@ icp_points: ICP and its acceptance test use at most this many of a
     icp_half_turns: bool = True
     icp_min_gain: float = 0.001
     icp_depth_margin: float | None = None
+    icp_own_margin: float = 0.0
     icp_points: int = 0
     support_distance: float = 0.02
     support_floor: float = 0.004

@@ -128,11 +128,12 @@ done
 # 4a. lm8.pt's inference (RESULTS.md, "Two sampling passes"): the same weights with one sampling pass and a centre
 #     from 3 votes (its inference until 2026-12-06), also from 2 votes, also with a third crop (`infer.recentre=2`),
 #     and two passes with a centre from 4 or 6 votes, and the frame's depth choosing among ICP's results (RESULTS.md,
-#     "The depth choosing among ICP's results"), on the validation captures with sampling seeds 0-3 and on the real
-#     frames without LineMOD objects; one pass and the depth's choice also on the test captures (seeds 0-1 and 0-2)
+#     "The depth choosing among ICP's results") or ICP's result from the detection's own pose kept unless another fits
+#     5 or 10 % better, on the validation captures with sampling seeds 0-3 and on the real frames without LineMOD
+#     objects; one pass and the depth's choice also on the test captures (seeds 0-1 and 0-2)
 for a in "onepass:$ONEPASS" "onepass_votes2:sampling.passes=1 $G.min_votes=2" \
          "onepass_recentre2:$ONEPASS infer.recentre=2" "votes4:$G.min_votes=4" "votes6:$G.min_votes=6" \
-         "icp_depth:$G.icp_depth_margin=0.1"; do
+         "icp_depth:$G.icp_depth_margin=0.1" "own0.05:$G.icp_own_margin=0.05" "own0.1:$G.icp_own_margin=0.1"; do
   for seed in 0 1 2 3; do
     for d in lm_val lchf_val; do
       eval_run runs/lm8 "$OUT/$d.h5" "reports/lm8_${a%%:*}_${d}_seed$seed" "${a#*:}" --seed $seed
