@@ -130,7 +130,7 @@ done
 #     and two passes with a centre from 4 or 6 votes, and the frame's depth choosing among ICP's results (RESULTS.md,
 #     "The depth choosing among ICP's results") or ICP's result from the detection's own pose kept unless another fits
 #     5 or 10 % better, on the validation captures with sampling seeds 0-3 and on the real frames without LineMOD
-#     objects; one pass and the depth's choice also on the test captures (seeds 0-1 and 0-2)
+#     objects; one pass, the depth's choice and the 10 % own-pose margin also on the test captures (seeds 0-1 and 0-2)
 for a in "onepass:$ONEPASS" "onepass_votes2:sampling.passes=1 $G.min_votes=2" \
          "onepass_recentre2:$ONEPASS infer.recentre=2" "votes4:$G.min_votes=4" "votes6:$G.min_votes=6" \
          "icp_depth:$G.icp_depth_margin=0.1" "own0.05:$G.icp_own_margin=0.05" "own0.1:$G.icp_own_margin=0.1"; do
@@ -147,12 +147,14 @@ for d in lm_test:test lchf_test:lchf; do
 done
 eval_run runs/lm8 "$OUT/lm_test.h5" reports/lm8_onepass_test_seed1 "$ONEPASS" --seed 1
 for seed in 1 2; do eval_run runs/lm8 "$OUT/lchf_test.h5" reports/lm8_onepass_lchf_seed$seed "$ONEPASS" --seed $seed; done
-for d in lm_test:test lchf_test:lchf; do
-  eval_run runs/lm8 "$OUT/${d%%:*}.h5" "reports/lm8_icp_depth_${d#*:}" "$G.icp_depth_margin=0.1"
-done
-eval_run runs/lm8 "$OUT/lm_test.h5" reports/lm8_icp_depth_test_seed1 "$G.icp_depth_margin=0.1" --seed 1
-for seed in 1 2; do
-  eval_run runs/lm8 "$OUT/lchf_test.h5" reports/lm8_icp_depth_lchf_seed$seed "$G.icp_depth_margin=0.1" --seed $seed
+for v in icp_depth:icp_depth_margin own0.1:icp_own_margin; do
+  for d in lm_test:test lchf_test:lchf; do
+    eval_run runs/lm8 "$OUT/${d%%:*}.h5" "reports/lm8_${v%%:*}_${d#*:}" "$G.${v#*:}=0.1"
+  done
+  eval_run runs/lm8 "$OUT/lm_test.h5" "reports/lm8_${v%%:*}_test_seed1" "$G.${v#*:}=0.1" --seed 1
+  for seed in 1 2; do
+    eval_run runs/lm8 "$OUT/lchf_test.h5" "reports/lm8_${v%%:*}_lchf_seed$seed" "$G.${v#*:}=0.1" --seed $seed
+  done
 done
 
 # 4b. the studies of RESULTS.md made on the previous lm8.pt (runs/lm8_prev: train_previous, above), only with

@@ -103,10 +103,13 @@ done
 #     default inference, ICP before its half turns, a stage-1 centre from 2 votes and stage 1 sampling 1.25 times as
 #     densely as it trained, also with a centre from 4 votes (RESULTS.md, lm8's "Stage 1's sampling density"), and
 #     the poses after ICP held to 95 % depth consistency (RESULTS.md, lm8's "A stricter depth check after ICP"), and
-#     stage 1 sampling the frame twice with a centre from 5 votes (lm8's "Two sampling passes"); mean and range of each
+#     stage 1 sampling the frame twice with a centre from 5 votes (lm8's "Two sampling passes"), and ICP's result chosen
+#     by the frame's depth or kept from the detection's own pose (lm8's "The depth choosing among ICP's results");
+#     mean and range of each
 for a in "default:" "before_half_turns:$OLD" "min_votes_2:$G.min_votes=2" "density_1.25:sampling.density=1.25" \
          "density_1.25_min_votes_4:sampling.density=1.25 $G.min_votes=4" \
-         "refined_consistent_0.95:$G.depth_consistent_refined=0.95" "passes_2:sampling.passes=2 $G.min_votes=5"; do
+         "refined_consistent_0.95:$G.depth_consistent_refined=0.95" "passes_2:sampling.passes=2 $G.min_votes=5" \
+         "icp_depth_0.1:$G.icp_depth_margin=0.1" "icp_own_0.1:$G.icp_own_margin=0.1"; do
   name=${a%%:*}; sets=()
   for kv in ${a#*:}; do sets+=(--set "$kv"); done
   for seed in 0 1 2 3 4 5 6 7; do
