@@ -77,9 +77,9 @@ def estimate(preds: Predictions, objects: ObjectInfo, cfg: GeometryConfig, timin
     lo = cfg.min_score if cfg.min_score_unrefined is None else cfg.min_score_unrefined
     dets = [d for d in dets if d.score >= lo or not d.other_class]  # a weak other-class copy is not worth an ICP
     colours = features[:, 3:6] if cfg.colour_check and features is not None and objects.texture else None
-    consistency = (lambda oid, R, t: pose_consistency(frame, objects, cfg, oid, R, t, CHOICE_POINTS)) \
+    consistency_of = (lambda oid, R, t: pose_consistency(frame, objects, cfg, oid, R, t, CHOICE_POINTS)) \
         if choose and frame is not None else None
-    refined = refine(dets, preds.xyz, objects, cfg, timings, cloud, consistency) if cfg.icp else None
+    refined = refine(dets, preds.xyz, objects, cfg, timings, cloud, consistency_of) if cfg.icp else None
     if colours is not None:
         dets = colour_checked(dets, cloud, colours, objects, cfg, icp=False, timings=timings)
         if refined is not None:

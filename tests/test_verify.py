@@ -151,8 +151,8 @@ def test_the_depth_chooses_among_icp_results_that_fit_alike():
         d = Detection(1, 1.0, Rk[k], tk[k], int(hit.sum()), np.zeros((9, 3)), np.arange(int(hit.sum())),
                       points=np.flatnonzero(hit))
         (by_fit,) = refine([d], cloud, objs, replace(cfg, icp_depth_margin=None), cloud=cloud,
-                           consistency=consistency)
-        (by_depth,) = refine([d], cloud, objs, cfg, cloud=cloud, consistency=consistency)
+                           consistency_of=consistency)
+        (by_depth,) = refine([d], cloud, objs, cfg, cloud=cloud, consistency_of=consistency)
         fit_alone.append(add(by_fit))
         assert by_depth.icp == "accepted" and add(by_depth) < 0.05 * dia
     assert max(fit_alone) > 0.3 * dia  # the fit alone keeps a wrong pose from some start
@@ -188,5 +188,45 @@ def test_a_bad_depth_margin_is_refused(margin):
 
 @pytest.mark.parametrize("own", ["-0.1", "1.5", ".nan"])
 def test_a_bad_own_margin_is_refused(own):
+    """--set geometry.icp_own_margin=M: a share outside [0, 1] is a one-line error; 0 and 0.1 are taken."""
     with pytest.raises(DetectorError, match="icp_own_margin"):
         geometry_config(0.5, True, apply_set_options(GeometryConfig(), parse_set_options([f"icp_own_margin={own}"])))
+    for ok in (0.0, 0.1):
+        cfg = apply_set_options(GeometryConfig(), parse_set_options([f"icp_own_margin={ok}"]))
+        assert geometry_config(0.5, True, cfg).icp_own_margin == ok
+
+
+def test_without_the_settings_the_choice_is_the_best_fit():
+    """With no depth margin and no own margin the candidate is the first best fit, as before the settings existed;
+    a NaN margin or consistency measures nothing and leaves the fits to choose."""
+    rng = np.random.default_rng(2)
+    for _ in range(200):
+        fits = rng.random(rng.integers(1, 12)) * 1e-3
+        fits[rng.random(len(fits)) < 0.3] = fits.min()  # ties: the first of them
+        assert chosen_result(fits, None, None) == int(np.argmin(fits))
+        assert chosen_result(fits, rng.random(len(fits)), None) == int(np.argmin(fits))
+        assert chosen_result(fits, rng.random(len(fits)), float("nan")) == int(np.argmin(fits))
+
+
+def test_the_depth_accepts_a_result_over_the_unrefined_pose_only_beyond_the_margin():
+    """A detection already at the true pose: ICP cannot fit its points better, so by the fits it is rejected.
+    A frame's depth that finds the results more consistent than the unrefined pose by less than the margin
+    changes nothing; by more, the candidate is accepted whatever the fits."""
+    R = Rotation.from_euler("xyz", [-30, -90, 0], degrees=True).as_matrix()
+    t = np.array([0.01, 0.0, 0.85])
+    cloud, hit = arm_frame(R, t)
+    mesh = trimesh.util.concatenate([trimesh.creation.box(bounds=np.array(b)) for b in ARM_BOXES])
+    dia = float(np.linalg.norm(mesh.bounds[1] - mesh.bounds[0]))
+    objs = ObjectInfo({1: np.zeros((9, 3))}, {1: dia}, {1: np.asarray(mesh.sample(1000, seed=3), np.float64)})
+    cfg = GeometryConfig(icp=True, icp_points=256, icp_depth_margin=0.1, icp_half_turns=False)
+    d = Detection(1, 1.0, R, t, int(hit.sum()), np.zeros((9, 3)), np.arange(int(hit.sum())),
+                  points=np.flatnonzero(hit))
+
+    def flat(gain):  # the unrefined pose (first) at 0.5, every ICP result at 0.5 + gain
+        return lambda oid, Rs, ts: np.r_[0.5, np.full(len(Rs) - 1, 0.5 + gain)]
+
+    (alone,) = refine([d], cloud, objs, cfg, cloud=cloud)
+    (within,) = refine([d], cloud, objs, cfg, cloud=cloud, consistency_of=flat(0.05))
+    (beyond,) = refine([d], cloud, objs, cfg, cloud=cloud, consistency_of=flat(0.2))
+    assert alone.icp == "rejected" and within.icp == "rejected" and beyond.icp == "accepted"
+    assert np.array_equal(within.R, R) and np.array_equal(within.t, t)

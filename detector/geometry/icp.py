@@ -171,26 +171,28 @@ def chosen_result(fits: list[float], consistency: np.ndarray | None, margin: flo
     results at most ``margin`` less consistent than the most consistent one, or among all without a consistency or
     a margin; but the first result where it is among them and its RMS is at most ``1 + own`` times that best one's."""
     fits = np.asarray(fits, np.float64)
-    if consistency is None or margin is None:
-        ok = np.arange(len(fits))
-    else:
+    ok = np.arange(len(fits))
+    if consistency is not None and margin is not None:
         consistency = np.asarray(consistency, np.float64)
-        ok = np.flatnonzero(consistency >= consistency.max() - max(margin, 0.0))
+        close = np.flatnonzero(consistency >= np.max(consistency) - max(margin, 0.0))
+        ok = close if len(close) else ok  # none: a NaN margin or consistency, which measures nothing
     k = int(ok[np.argmin(fits[ok])])
     return 0 if ok[0] == 0 and fits[0] <= fits[k] * (1.0 + own) else k
 
 
-def refine_poses(jobs: list, objects: ObjectInfo, cfg: GeometryConfig, consistency=None
+def refine_poses(jobs: list, objects: ObjectInfo, cfg: GeometryConfig, consistency_of=None
                  ) -> list[tuple[np.ndarray, np.ndarray, bool, tuple[float, float]]]:
     """:func:`refine_pose` for several detections at once: jobs [(scene_points (S,3) camera metres, obj_id, R (3,3),
     t (3,), alternatives or None), ...]. Every job's ICP starts (:func:`icp_starts`) run side by side in one pool,
     so two cores stay busy across detections rather than idling at the end of each one's starts; each start's
     result is the same as alone (one thread inside each ICP), so the results equal calling :func:`refine_pose` on
-    each job. consistency: a function (obj_id, R (K,3,3), t (K,3)) -> (K,) the frame's depth consistency of K poses
+    each job. Each job's candidate is :func:`chosen_result`'s (``cfg.icp_depth_margin``, ``cfg.icp_own_margin``)
+    and is accepted when it fits better than the unrefined pose by ``cfg.icp_min_gain`` of the diameter.
+    consistency_of: a function (obj_id, R (K,3,3), t (K,3) metres) -> (K,) the frame's depth consistency of K poses
     (:func:`detector.geometry.verify.pose_consistency` on the frame), which with ``cfg.icp_depth_margin`` chooses
-    among a detection's results (:func:`chosen_result`), and the chosen result is also kept when it is more than
-    that margin more consistent than the unrefined pose, whatever the fits; None: the best fit, kept when it fits
-    better by ``cfg.icp_min_gain``. Returns one (R, t, accepted, (RMS before, RMS after)) per job, in their order."""
+    among a detection's results, and the candidate is then also accepted when it is more than that margin more
+    consistent than the unrefined pose, whatever the fits; None: the fits alone. Returns one (R, t, accepted, (RMS
+    before, RMS after)) per job, in their order."""
     flat = []  # (job index, start)
     for j, (_, oid, R, t, alts) in enumerate(jobs):
         flat += [(j, s) for s in icp_starts(oid, R, t, objects, cfg, alts)]
@@ -216,14 +218,14 @@ def refine_poses(jobs: list, objects: ObjectInfo, cfg: GeometryConfig, consisten
         res = fit_residuals(pts, tree, normals, np.stack([r[0] for r in results]),
                             np.stack([r[1] for r in results]), gate)  # every start's result in one query
         fits = [fit_rms(r, cfg.icp_trim) for r in res]
-        use = consistency is not None and cfg.icp_depth_margin is not None
-        cons = consistency(oid, np.stack([R] + [r[0] for r in results]), np.stack([t] + [r[1] for r in results])) \
-            if use else None
+        choose = consistency_of is not None and cfg.icp_depth_margin is not None
+        cons = consistency_of(oid, np.stack([R] + [r[0] for r in results]),  # the unrefined pose, then the results
+                              np.stack([t] + [r[1] for r in results])) if choose else None
         k = chosen_result(fits, None if cons is None else cons[1:], cfg.icp_depth_margin, cfg.icp_own_margin)
         after, (R1, t1) = fits[k], results[k]
-        # kept when it fits better, or when the depth tells it from the pose it started from (which may fit as well)
-        clearer = cons is not None and cons[0] < cons[1 + k] - cfg.icp_depth_margin
-        if after < before - cfg.icp_min_gain * dia or clearer:
+        # accepted when it fits better, or when the depth prefers it to the unrefined pose (which may fit as well)
+        depth_prefers = cons is not None and cons[0] < cons[1 + k] - cfg.icp_depth_margin
+        if after < before - cfg.icp_min_gain * dia or depth_prefers:
             out.append((R1, t1, True, (before, after)))
         else:
             out.append((np.asarray(R, np.float64), np.asarray(t, np.float64), False, (before, after)))
@@ -238,7 +240,8 @@ def refine_pose(scene_points: np.ndarray, obj_id: int, R: np.ndarray, t: np.ndar
 
     scene_points: (S,3) camera frame, metres; R (3,3), t (3,) the initial T_cam_model; alternatives: other
     starting poses [(R, t), ...]; ICP runs from each of :func:`icp_starts` (the pose, some alternatives, its half
-    turns) and the result that fits best is the candidate. Returns R (3,3), t (3,), accepted (False: the input
+    turns) and the result that fits best is the candidate (with ``cfg.icp_own_margin``, the result from the pose
+    itself unless another fits clearly better: :func:`chosen_result`; without the frame, no depth's choice). Returns R (3,3), t (3,), accepted (False: the input
     pose, unchanged) and (RMS before, RMS after) in metres.
     """
     return refine_poses([(scene_points, obj_id, R, t, alternatives)], objects, cfg)[0]
@@ -266,7 +269,7 @@ def icp_points(points: np.ndarray, cfg: GeometryConfig) -> np.ndarray:
 
 
 def refine(detections: list[Detection], xyz: np.ndarray, objects: ObjectInfo, cfg: GeometryConfig,
-           timings: dict | None = None, cloud: np.ndarray | None = None, consistency=None) -> list[Detection]:
+           timings: dict | None = None, cloud: np.ndarray | None = None, consistency_of=None) -> list[Detection]:
     """ICP-refined copies of ``detections`` using each one's scene points (metres).
 
     xyz: (K,3) the predicted points (``members`` index them); cloud: (M,3) the frame's full point cloud or None.
@@ -276,7 +279,7 @@ def refine(detections: list[Detection], xyz: np.ndarray, objects: ObjectInfo, cf
     none next to points predicted as background or as another detection); else ``xyz[members]``. Each ICP pose
     is kept only when it fits those points better, or the frame's depth agrees with it clearly better
     (:func:`refine_poses`); the detection's ``icp`` says what
-    happened. Detections with fewer than ``cfg.icp_min_points`` scene points are "skipped". consistency: as
+    happened. Detections with fewer than ``cfg.icp_min_points`` scene points are "skipped". consistency_of: as
     :func:`refine_poses` takes it (the frame's depth chooses among each detection's ICP results). Adds "icp" seconds.
     """
     t0 = time.perf_counter()
@@ -293,7 +296,7 @@ def refine(detections: list[Detection], xyz: np.ndarray, objects: ObjectInfo, cf
     todo = [k for k, pts in enumerate(points) if len(pts) >= cfg.icp_min_points]
     refined = dict(zip(todo, refine_poses([(icp_points(points[k], cfg), detections[k].obj_id, detections[k].R,
                                              detections[k].t, detections[k].alternatives) for k in todo],
-                                           objects, cfg, consistency)))
+                                           objects, cfg, consistency_of)))
     out = []
     for k, (d, pts) in enumerate(zip(detections, points)):
         if k not in refined:

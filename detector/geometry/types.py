@@ -32,17 +32,19 @@ class GeometryConfig:
     the simulated linemod test capture: the duck and the can turned about their upright axis); icp_min_gain: the ICP pose is kept
     only when it lowers that trimmed RMS by at least this fraction of the diameter (a smaller gain is within what
     the model's point sampling itself contributes, and on a few points of a smooth surface ICP can slide a right
-    pose by centimetres for such a gain); icp_depth_margin: which of a detection's ICP results is its candidate, where
-the frame's depth is at hand: of the results whose depth consistency (the depth check's measure,
-:func:`detector.geometry.verify.depth_consistency`) is within this of the most consistent one's, the best-fitting
-(None: the best-fitting of all). The trimmed fit leaves out the worst-fitting points, and those are where a
-half-turned pose shows its difference (a can's spout posed where the sensor sees the desk behind); the result is
-then also kept when it is more than this more consistent than the pose ICP started from. Not the default: on the
-simulated captures it found a few more poses and let a few more wrong ones through the depth check (RESULTS.md);
-icp_own_margin: the result of ICP from the detection's own pose is its candidate unless another start's result fits
-better by more than this share of that RMS (0: the best fit wins): from a half-turned start ICP can end on the wrong
-way round of an object whose sides look alike, fitting the points a little better by chance (the sensor's noise);
-icp_points: ICP and its acceptance test use at most this many of a
+    pose by centimetres for such a gain); icp_depth_margin: a consistency difference in [0, 1] that lets the frame's
+    depth choose a detection's ICP candidate: of its results whose depth consistency (the depth check's measure on
+    250 model points, :func:`detector.geometry.verify.pose_consistency`) is within this of the most consistent
+    one's, the best-fitting; the candidate is then also accepted when it is more than this more consistent than
+    the detection's unrefined pose, whatever the fits (None: off, the fits alone decide). The trimmed fit leaves out
+    the worst-fitting points, and those are where a half-turned pose shows its difference (a can's spout posed where
+    the sensor sees the desk behind). Not the default: on the simulated captures it found a few more poses and let a
+    few more wrong ones through the depth check (RESULTS.md); icp_own_margin: the result of ICP from the
+    detection's own pose is the candidate unless the best other result's trimmed RMS is lower than its by more than
+    this share of that best RMS (0: off, the best fit is the candidate): from a half-turned start ICP can end on
+    the wrong way round of an object whose sides look alike, fitting the points a little better by chance (the
+    sensor's noise). Not the default: a mug's right turn about its body, its handle hidden, often fits only a
+    little better (RESULTS.md); icp_points: ICP and its acceptance test use at most this many of a
     detection's scene points, evenly spread over them (0 = all; their cost grows with the points, and a stage 2
     that pools several crop samples hands over several hundred), the score after ICP uses them all;
     propagate: metres, a frame point belongs to a detection when its ``owner_votes`` nearest predicted points
