@@ -157,13 +157,13 @@ def geometry_config(tau: float, icp: bool, base: GeometryConfig | None = None) -
     """A GeometryConfig from CLI options, checked; ``base`` gives the other settings."""
     if not 0 <= tau <= 1:
         raise DetectorError(f"--tau must be in [0, 1], got {tau}")
-    margin = (base or GeometryConfig()).icp_depth_margin
-    if margin is not None and not 0 <= margin <= 1:
-        raise DetectorError(f"geometry.icp_depth_margin is a consistency margin in [0, 1] or null, got {margin}")
-    own = (base or GeometryConfig()).icp_own_margin
-    if not 0 <= own <= 1:
-        raise DetectorError(f"geometry.icp_own_margin is a share in [0, 1], got {own}")
-    return replace(base or GeometryConfig(), tau=tau, icp=icp)
+    base = base or GeometryConfig()
+    if base.icp_depth_margin is not None and not 0 <= base.icp_depth_margin <= 1:
+        raise DetectorError("geometry.icp_depth_margin is a consistency margin in [0, 1] or null, got "
+                            f"{base.icp_depth_margin}")
+    if not 0 <= base.icp_own_margin <= 1:
+        raise DetectorError(f"geometry.icp_own_margin is a share in [0, 1], got {base.icp_own_margin}")
+    return replace(base, tau=tau, icp=icp)
 
 
 def split_sets(sets: list[str] | None) -> tuple[list[str], dict, dict]:

@@ -121,18 +121,25 @@ def arm_frame(R, t, w: int = 320, h: int = 240, f: float = 500.0, wall: float = 
     return d * z[:, None], hit
 
 
-def test_the_depth_chooses_among_icp_results_that_fit_alike():
-    """The arm points away from the camera, so the frame shows the box alone. Turned half way about its upright
-    axis, the pose puts the arm in front of the box: its fit to the box's points is as good, and ICP from that
-    start ends there when the fit chooses. The frame's depth sees the box's face behind the arm, so with it
-    (``icp_depth_margin``) ICP ends on the right pose from every half-turned start."""
+def arm_scene():
+    """The armed box posed with its arm away from the camera, 0.85 m off, and its exact frame: R (3,3), t (3,)
+    metres, the frame's cloud (M,3) metres and its object rays (M,) bool, a (1000,3) model sample, its diameter in
+    metres and its :class:`ObjectInfo` (object 1)."""
     R = Rotation.from_euler("xyz", [-30, -90, 0], degrees=True).as_matrix()  # model +x (the arm) away from the camera
     t = np.array([0.01, 0.0, 0.85])
     cloud, hit = arm_frame(R, t)
     mesh = trimesh.util.concatenate([trimesh.creation.box(bounds=np.array(b)) for b in ARM_BOXES])
     model = np.asarray(mesh.sample(1000, seed=3), np.float64)
     dia = float(np.linalg.norm(mesh.bounds[1] - mesh.bounds[0]))
-    objs = ObjectInfo({1: np.zeros((9, 3))}, {1: dia}, {1: model})
+    return R, t, cloud, hit, model, dia, ObjectInfo({1: np.zeros((9, 3))}, {1: dia}, {1: model})
+
+
+def test_the_depth_chooses_among_icp_results_that_fit_alike():
+    """The arm points away from the camera, so the frame shows the box alone. Turned half way about its upright
+    axis, the pose puts the arm in front of the box: its fit to the box's points is as good, and ICP from that
+    start ends there when the fit chooses. The frame's depth sees the box's face behind the arm, so with it
+    (``icp_depth_margin``) ICP ends on the right pose from every half-turned start."""
+    R, t, cloud, hit, model, dia, objs = arm_scene()
     assert np.all((cloud[hit] - t) @ R[:, 0] < 0.031)  # no point of the arm is in the frame
     frame = range_image(cloud)
     cfg = GeometryConfig(icp=True, icp_points=256, icp_depth_margin=0.1)
@@ -212,12 +219,7 @@ def test_the_depth_accepts_a_result_over_the_unrefined_pose_only_beyond_the_marg
     """A detection already at the true pose: ICP cannot fit its points better, so by the fits it is rejected.
     A frame's depth that finds the results more consistent than the unrefined pose by less than the margin
     changes nothing; by more, the candidate is accepted whatever the fits."""
-    R = Rotation.from_euler("xyz", [-30, -90, 0], degrees=True).as_matrix()
-    t = np.array([0.01, 0.0, 0.85])
-    cloud, hit = arm_frame(R, t)
-    mesh = trimesh.util.concatenate([trimesh.creation.box(bounds=np.array(b)) for b in ARM_BOXES])
-    dia = float(np.linalg.norm(mesh.bounds[1] - mesh.bounds[0]))
-    objs = ObjectInfo({1: np.zeros((9, 3))}, {1: dia}, {1: np.asarray(mesh.sample(1000, seed=3), np.float64)})
+    R, t, cloud, hit, _, _, objs = arm_scene()
     cfg = GeometryConfig(icp=True, icp_points=256, icp_depth_margin=0.1, icp_half_turns=False)
     d = Detection(1, 1.0, R, t, int(hit.sum()), np.zeros((9, 3)), np.arange(int(hit.sum())),
                   points=np.flatnonzero(hit))
