@@ -59,6 +59,10 @@ class Checkpoint:
         return {**self.sampling, "points": self.num_points, "keypoints": self.model_config.npoints[0]}
 
 
+#: The values of ``sampling.fps`` (:class:`SamplingConfig`).
+FPS_CHOICES = ("trained", "tree")
+
+
 @dataclass
 class SamplingConfig:
     """How stage 1 samples a frame at inference, against how it trained. density: the points drawn from a frame
@@ -69,10 +73,15 @@ class SamplingConfig:
     each drawn as a single pass draws (another seed each; the first is the single pass's), in one batch, and their
     predictions are pooled: a small object gets that many times the predictions while each pass sees the density
     the network trained on (:func:`detector.stage1.predictor.network_predictor`). A centre's ``geometry.min_votes``
-    counts the votes of all passes."""
+    counts the votes of all passes. fps: how each sampling level's farthest points are found on a CPU (a GPU computes
+    them in torch, :mod:`detector.stage1.ops`): ``"trained"`` as in training (fpsample's FPS loop from the first
+    point on clouds of up to 4096 points, its tree-based FPS on larger ones) or ``"tree"`` (the tree-based FPS on
+    every level: as well spread points from another first point, about 9 ms sooner a pass at 4096 points;
+    BENCHMARKS.md)."""
 
     density: float = 1.0
     passes: int = 1
+    fps: str = "trained"
 
     def __post_init__(self):
         try:
@@ -91,6 +100,8 @@ class SamplingConfig:
         self.passes = int(self.passes)
         if not 1 <= self.passes <= 8:
             raise DetectorError(f"sampling.passes must be in [1, 8], got {self.passes}")
+        if self.fps not in FPS_CHOICES:
+            raise DetectorError(f"sampling.fps must be one of {', '.join(FPS_CHOICES)}, got {self.fps!r}")
 
     @classmethod
     def from_dict(cls, d: dict | None) -> "SamplingConfig":
@@ -98,7 +109,8 @@ class SamplingConfig:
         d = dict(d or {})
         unknown = set(d) - {f.name for f in fields(cls)}
         if unknown:
-            raise DetectorError(f"unknown sampling option '{sorted(unknown)[0]}' (sampling.density, sampling.passes)")
+            raise DetectorError(f"unknown sampling option '{sorted(unknown)[0]}' (sampling.density, sampling.passes, "
+                                "sampling.fps)")
         return cls(**d)
 
     def scaled(self, count: int) -> int:

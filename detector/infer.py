@@ -184,7 +184,7 @@ def split_sets(sets: list[str] | None) -> tuple[list[str], dict, dict]:
         else:
             raise DetectorError(f"--set {key}: eval and predict take geometry, sampling and infer settings only "
                                 "(--set geometry.KEY=VALUE, --set sampling.density=VALUE, --set sampling.passes=N, "
-                                "--set infer.KEY=VALUE)")
+                                "--set sampling.fps=tree, --set infer.KEY=VALUE)")
     return geometry, sampling, infer
 
 

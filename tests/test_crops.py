@@ -773,7 +773,8 @@ def test_two_stage_train_resume_eval_predict(labels, tmp_path):
     # predicts at each
     density = SamplingConfig(1.5)
     assert DEFAULTS["sampling"]["density"] == 1
-    assert ck.sampling == {"density": 1.5, "passes": DEFAULTS["sampling"]["passes"]}
+    default_fps = SamplingConfig.from_dict(DEFAULTS["sampling"]).fps
+    assert ck.sampling == {"density": 1.5, "passes": DEFAULTS["sampling"]["passes"], "fps": default_fps}
     trained = load_checkpoint(out / "model.pt", sampling={"density": 1})
     assert trained.num_points == 1024 and ck.num_points == density.scaled(1024) > 1024
     assert ck.model_config.npoints[0] == density.scaled(trained.model_config.npoints[0]) > \
@@ -826,8 +827,8 @@ def test_two_stage_train_resume_eval_predict(labels, tmp_path):
     assert r.exit_code == 0, r.output
     s = json.loads((rep / "report.json").read_text())
     assert s["config"]["centre_votes"] and s["config"]["tau"] == tau and "stage2" in s["timing_ms"]
-    assert s["sampling"] == {"density": 1.5, "passes": ck.sampling["passes"], "points": ck.num_points,
-                             "keypoints": ck.model_config.npoints[0]}
+    assert s["sampling"] == {"density": 1.5, "passes": ck.sampling["passes"], "fps": ck.sampling["fps"],
+                             "points": ck.num_points, "keypoints": ck.model_config.npoints[0]}
     assert s["config"]["depth_check"] and "depth_check" in s["timing_ms"]
     # --set changes the model's geometry settings for this run; a wrong key or value is a one-line error
     r = run.invoke(det_app, ["eval", str(out / "model.pt"), str(labels), "--out", str(rep), "--icp", "--quiet",
@@ -837,15 +838,17 @@ def test_two_stage_train_resume_eval_predict(labels, tmp_path):
     assert not s["config"]["depth_check"] and s["config"]["tau"] == 0.3 and "depth_check" not in s["timing_ms"]
     r = run.invoke(det_app, ["eval", str(out / "model.pt"), str(labels), "--out", str(rep), "--icp", "--quiet",
                              "--frames", "2", "--set", "sampling.density=1", "--set", "geometry.tau=0.3",
-                             "--set", "sampling.passes=1"])
+                             "--set", "sampling.passes=1", "--set", "sampling.fps=trained"])
     assert r.exit_code == 0, r.output
     s = json.loads((rep / "report.json").read_text())
-    assert s["config"]["tau"] == 0.3 and s["sampling"] == {"density": 1.0, "passes": 1, "points": 1024, "keypoints":
-                                                             trained.model_config.npoints[0]}
+    assert s["config"]["tau"] == 0.3 and s["sampling"] == {"density": 1.0, "passes": 1, "fps": "trained",
+                                                             "points": 1024,
+                                                             "keypoints": trained.model_config.npoints[0]}
     for bad, word in (("geometry.depth_chek=false", "depth_check"), ("depth_check=false", "geometry.KEY"),
                       ("geometry.other_classes=abc", "number"), ("sampling.densty=2", "sampling.density"),
                       ("sampling.density=20", "[0.25, 8]"), ("sampling.density=abc", "number"),
                       ("sampling.passes=0", "[1, 8]"), ("sampling.passes=1.5", "whole number"),
+                      ("sampling.fps=exact", "trained, tree"),
                       ("stage1.lr=0.1", "geometry, sampling and infer"), ("infer.verfy=8", "verify"),
                       ("infer.hypotheses=0", "at least 1")):
         r = run.invoke(det_app, ["eval", str(out / "model.pt"), str(labels), "--out", str(rep), "--set", bad])

@@ -552,3 +552,29 @@ def test_sampling_passes_pool_samplings_and_each_pass_predicts_as_alone(random_c
     assert np.allclose(b.control_points[k:] - b.xyz[k:, None], out["offsets"][0].double().numpy(), atol=1e-5)
     on_frame = {tuple(p) for p in feats[:, :3].astype(np.float64)}
     assert all(tuple(p) in on_frame for p in b.xyz)
+
+
+def test_sampling_fps_tree_predicts_at_the_tree_fps_keypoints_of_the_same_draw(random_checkpoint, label_file):
+    """``sampling.fps`` "tree": stage 1 sees the same drawn points as with the training's FPS, and predicts at the
+    keypoints fpsample's tree-based FPS picks among them (an exact FPS sequence from another first point)."""
+    from types import SimpleNamespace
+
+    from detector.checkpoint import load_checkpoint
+    from detector.stage1.dataset import inference_batch
+    from detector.stage1.ops import fps_numpy
+    from detector.stage1.predictor import network_predictor
+
+    trained, tree = load_checkpoint(random_checkpoint), load_checkpoint(random_checkpoint, sampling={"fps": "tree"})
+    assert (trained.sampling["fps"], tree.sampling["fps"]) == ("trained", "tree")
+    with LabelFile(label_file) as lf:
+        feats = np.asarray(lf.frame(0).features, np.float32)
+    frame = SimpleNamespace(features=feats)
+    a, b = network_predictor(trained, 5)(frame), network_predictor(tree, 5)(frame)
+    batch = inference_batch(feats, trained.model_config, trained.num_points, 5,
+                            normalisation=trained.normalisation or None, plane_keep=trained.plane_keep)
+    drawn = feats[batch["point_index"].numpy(), :3]
+    keypoints = trained.model_config.npoints[0]
+    loop, tree_order = fps_numpy(drawn, keypoints), fps_numpy(drawn, keypoints, tree=True)
+    assert np.array_equal(a.xyz, drawn[loop].astype(np.float64))
+    assert np.array_equal(b.xyz, drawn[tree_order].astype(np.float64))
+    assert not np.array_equal(a.xyz, b.xyz)

@@ -91,6 +91,35 @@ def test_clouds_up_to_the_cpu_presets_size_keep_the_loop_from_index_0_and_larger
     np.testing.assert_array_equal(fps_numpy(q, 256), tree)
 
 
+def test_tree_fps_on_request_is_exact_on_every_cloud_size_and_matches_fpsample_tree():
+    """``tree=True`` (inference's ``sampling.fps: tree``) takes the tree-based FPS on clouds of any size, also those
+    the training's loop from index 0 samples: still an exact FPS sequence of distinct points, as well spread."""
+    import fpsample
+
+    from detector.stage1.ops import TREE_FPS_HEIGHT
+
+    p = cloud(EXACT_FPS_MAX_POINTS, 9) * np.float32([1.2, 0.8, 0.2])
+    order = fps_numpy(p, 1024, tree=True)
+    assert order.dtype == np.int64 and len(set(order.tolist())) == 1024
+    assert np.all(fps_gaps(p, order) <= 1e-6)
+    tree = fpsample.bucket_fps_kdline_sampling(p, 1024, h=TREE_FPS_HEIGHT, start_idx=0).astype(np.int64)
+    np.testing.assert_array_equal(order, tree)
+    loop = fps_numpy(p, 1024)
+    np.testing.assert_array_equal(loop, naive_fps(p, 1024))  # without it: the training's loop, unchanged
+    assert order[0] != 0  # another first point: not the loop's sequence
+    cover = [np.sqrt(((p[:, None] - p[s][None]) ** 2).sum(-1)).min(1).max() for s in (order, loop)]
+    assert cover[0] == pytest.approx(cover[1], rel=0.1)
+    for n, m in ((64, 32), (2 ** TREE_FPS_HEIGHT, 8), (2 ** TREE_FPS_HEIGHT - 1, 8), (5, 5)):  # the small deep levels
+        q = cloud(n, n)
+        got = fps_numpy(q, m, tree=True)
+        assert len(set(got.tolist())) == m and np.all(fps_gaps(q, got) <= 1e-6)
+        if n < 2 ** TREE_FPS_HEIGHT:  # under the tree's least size: the loop from index 0
+            np.testing.assert_array_equal(got, naive_fps(q, m))
+    idx = precompute_indices(p, [(1024, 0.1, 8), (256, 0.2, 8)], tree_fps=True)
+    np.testing.assert_array_equal(idx["sample_0"], order)
+    np.testing.assert_array_equal(idx["sample_1"], fps_numpy(p[order], 256, tree=True))
+
+
 def test_ball_query_membership_and_order():
     p = cloud(300, 2)
     centres_idx = naive_fps(p, 40)

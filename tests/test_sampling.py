@@ -31,6 +31,10 @@ def test_density_scales_counts_to_multiples_of_64_and_one_keeps_them():
             SamplingConfig(passes=bad)
     with pytest.raises(DetectorError, match="unknown sampling option 'points'"):
         SamplingConfig.from_dict({"points": 8192})
+    assert SamplingConfig().fps == "trained" and SamplingConfig.from_dict({"fps": "tree"}).fps == "tree"
+    for bad in ("exact", "", None, 1, True):
+        with pytest.raises(DetectorError, match="sampling.fps must be one of trained, tree"):
+            SamplingConfig(fps=bad)
 
 
 def test_split_sets_routes_geometry_sampling_and_stage2_settings():
@@ -46,18 +50,18 @@ def test_split_sets_routes_geometry_sampling_and_stage2_settings():
 def test_shipped_models_sample_as_they_trained_and_a_stored_density_is_applied(tmp_path):
     import torch
 
-    # both store density 1: they sample as trained (4096 points, 1024 keypoints); lm8.pt twice, ycbv3.pt (which stores
-    # no passes, as models made before the setting) once
+    # both store density 1: they sample as trained (4096 points, 1024 keypoints, the training's FPS); lm8.pt twice,
+    # ycbv3.pt (which stores no passes, as models made before the setting) once
     for name, passes in (("lm8.pt", 2), ("ycbv3.pt", 1)):
         ck = load_checkpoint(CHECKPOINTS / name)
-        assert ck.sampling == {"density": 1.0, "passes": passes}
+        assert ck.sampling == {"density": 1.0, "passes": passes, "fps": "trained"}
         assert (ck.num_points, ck.model_config.npoints[0]) == (4096, 1024)
         assert ck.num_points == int(ck.extra["train_config"]["num_points"])
     payload = torch.load(CHECKPOINTS / "lm8.pt", map_location="cpu", weights_only=False)
     payload["extra"]["sampling_config"] = {"density": 1.25}
     torch.save(payload, tmp_path / "dense.pt")
     dense = load_checkpoint(tmp_path / "dense.pt")
-    assert dense.sampling == {"density": 1.25, "passes": 1}
+    assert dense.sampling == {"density": 1.25, "passes": 1, "fps": "trained"}  # a file without fps: as trained
     assert (dense.num_points, dense.model_config.npoints) == (5120, [1280, *ck.model_config.npoints[1:]])
     back = load_checkpoint(tmp_path / "dense.pt", sampling={"density": 1})  # --set over the stored setting
     assert (back.num_points, back.model_config.npoints[0]) == (4096, 1024)

@@ -14,8 +14,9 @@ from detector.errors import DetectorError
 #: eval's and predict's --set: the model file's settings they change for one run (detector.infer.split_sets).
 SET_HELP = ("A geometry, sampling or stage-2 inference setting of the model file, e.g. --set "
             "geometry.depth_check=false (keys of detector.geometry.types.GeometryConfig), --set sampling.density=1 "
-            "(stage 1 samples as it trained), --set sampling.passes=1 (stage 1 samples a frame once; with "
-            "geometry.min_votes=3 for a model that samples twice) or --set infer.hypotheses=64 (keys of "
+            "(stage 1 draws as many points as it trained on), --set sampling.passes=1 (stage 1 samples a frame "
+            "once; with geometry.min_votes=3 for a model that samples twice), --set sampling.fps=trained (the training's "
+            "farthest point sampling instead of the tree-based one) or --set infer.hypotheses=64 (keys of "
             "detector.stage2.poser.PoserConfig).")
 
 

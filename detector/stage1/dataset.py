@@ -61,13 +61,15 @@ def class_index(semantic: np.ndarray, class_ids: Sequence[int]) -> np.ndarray:
     return np.where(found, pos + 1, 0).astype(np.int64)
 
 
-def sampling_indices(xyz: np.ndarray, specs: list[tuple[int, float, int]]) -> dict[str, torch.Tensor]:
+def sampling_indices(xyz: np.ndarray, specs: list[tuple[int, float, int]], tree_fps: bool = False
+                     ) -> dict[str, torch.Tensor]:
     """The network's sampling / neighbour indices of one cloud as tensors
     (:func:`detector.stage1.ops.precompute_indices`).
 
-    xyz: (N, 3) float32 metres; specs: the model config's ``sampling_specs()``.
+    xyz: (N, 3) float32 metres; specs: the model config's ``sampling_specs()``; tree_fps: every level's FPS
+    tree-based.
     """
-    out = precompute_indices(np.ascontiguousarray(xyz, dtype=np.float32), specs)
+    out = precompute_indices(np.ascontiguousarray(xyz, dtype=np.float32), specs, tree_fps)
     return {k: torch.from_numpy(np.ascontiguousarray(v)) for k, v in out.items()}
 
 
@@ -117,8 +119,9 @@ class PointDataset(FrameSource):
 
 def inference_batch(features: np.ndarray, model_cfg, num_points: int, seed: int | Sequence[int] = 0,
                     normalisation: dict[str, float] | None = None, precompute: bool = True,
-                    plane_keep: float = 1.0) -> dict[str, torch.Tensor]:
-    """A batch of one frame for prediction: the same sampling as training, without augmentation.
+                    plane_keep: float = 1.0, tree_fps: bool = False) -> dict[str, torch.Tensor]:
+    """A batch of one frame for prediction: the same sampling as training, without augmentation (with
+    ``tree_fps``, every level's FPS tree-based: as well spread points from another first point).
 
     features: (N, 9) float32 [X, Y, Z, R, G, B, Nx, Ny, Nz], metres and colour in [0, 1]; seed: of the draw
     (``numpy.random.default_rng``'s: an int or a sequence of ints).
@@ -133,7 +136,7 @@ def inference_batch(features: np.ndarray, model_cfg, num_points: int, seed: int 
     rows = frame_rows(feats, int(num_points), np.random.default_rng(seed), plane_keep)
     sel = feats[rows]
     specs = list(model_cfg.sampling_specs())
-    batch = {k: v[None] for k, v in sampling_indices(sel[:, :3], specs).items()} if precompute else {}
+    batch = {k: v[None] for k, v in sampling_indices(sel[:, :3], specs, tree_fps).items()} if precompute else {}
     batch["features"] = torch.from_numpy(normalise_features(sel, normalisation))[None]
     batch["point_index"] = torch.from_numpy(rows)
     return batch

@@ -17,6 +17,9 @@ indices, up to floating-point near-ties):
   cloud; the start is still a function of the cloud alone). The two paths then sample equally spread points, not
   the same ones (a model on a GPU, which computes its indices in torch, samples such a cloud differently from one on
   CPU).
+  With ``tree`` (inference's ``sampling.fps: tree``, :class:`detector.checkpoint.SamplingConfig`) the numpy path
+  takes the tree-based FPS on every cloud of at least ``2 ** TREE_FPS_HEIGHT`` points, also those up to
+  :data:`EXACT_FPS_MAX_POINTS` that training samples with the loop.
 * Ball query = the ``nsample`` nearest points within ``radius`` of the centre, nearest first; missing slots
   repeat the nearest one (the centre itself, since centres are sampled from the points).
 * 3-NN weights are normalised inverse Euclidean distances ``1 / (d + 1e-8)``.
@@ -62,16 +65,18 @@ def check_specs(num_points: int, specs: list[Spec]) -> None:
         n = npoint
 
 
-def fps_numpy(xyz: np.ndarray, npoint: int) -> np.ndarray:
+def fps_numpy(xyz: np.ndarray, npoint: int, tree: bool = False) -> np.ndarray:
     """Exact farthest point sampling (fpsample): from index 0 on clouds of up to :data:`EXACT_FPS_MAX_POINTS`
-    points, from a point fpsample's tree picks on larger ones (the module's conventions).
+    points, from a point fpsample's tree picks on larger ones (the module's conventions), or with ``tree`` on every
+    cloud of at least ``2 ** TREE_FPS_HEIGHT`` points (the tree's least; as well spread, about 10 times sooner on 4096
+    points: BENCHMARKS.md).
 
     xyz: (N, 3) float32 metres. Returns (npoint,) int64 indices in sampling order.
     """
     if npoint == len(xyz) == 1:
         return np.zeros(1, np.int64)
     xyz = np.ascontiguousarray(xyz, dtype=np.float32)
-    if len(xyz) > EXACT_FPS_MAX_POINTS:
+    if (tree and len(xyz) >= 2 ** TREE_FPS_HEIGHT) or len(xyz) > EXACT_FPS_MAX_POINTS:
         return fpsample.bucket_fps_kdline_sampling(xyz, npoint, h=TREE_FPS_HEIGHT, start_idx=0).astype(np.int64)
     return fpsample.fps_sampling(xyz, npoint, start_idx=0).astype(np.int64)
 
@@ -116,10 +121,11 @@ def three_nn_numpy(unknown: np.ndarray, known: np.ndarray) -> tuple[np.ndarray, 
     return idx, inverse_distance_weights_numpy(dist)
 
 
-def precompute_indices(xyz: np.ndarray, specs: list[Spec]) -> dict[str, np.ndarray]:
+def precompute_indices(xyz: np.ndarray, specs: list[Spec], tree_fps: bool = False) -> dict[str, np.ndarray]:
     """All sampling / grouping / interpolation indices of one cloud (fast library path, for loader workers).
 
-    xyz: (N, 3) float32 metres; specs: [(npoint, radius, nsample), ...] one per SA level.
+    xyz: (N, 3) float32 metres; specs: [(npoint, radius, nsample), ...] one per SA level; tree_fps: every level's
+    FPS tree-based (:func:`fps_numpy`).
     Returns ``sample_l`` (npoint_l,) int64, ``group_l`` (npoint_l, nsample_l) int64 for l = 0..L-1 and
     ``interp_l_idx`` (n_l, 3) int64, ``interp_l_w`` (n_l, 3) float32 (3-NN of level l among level l+1) for
     l = 1..L-1. DetectorError when a level asks for more points than it has.
@@ -132,7 +138,7 @@ def precompute_indices(xyz: np.ndarray, specs: list[Spec]) -> dict[str, np.ndarr
     levels = [np.ascontiguousarray(xyz, np.float32)]
     for level, (npoint, radius, nsample) in enumerate(specs):
         pts = levels[-1]
-        sample = fps_numpy(pts, npoint)
+        sample = fps_numpy(pts, npoint, tree_fps)
         out[f"sample_{level}"] = sample
         out[f"group_{level}"] = ball_query_numpy(pts, pts[sample], radius, nsample)
         levels.append(pts[sample])

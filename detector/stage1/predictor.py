@@ -66,12 +66,14 @@ def network_predictor(checkpoint, seed: int = 0, device: str | None = None) -> P
     "network" (synchronised on GPU). On a GPU the neighbour indices are computed by the model (inside "network").
     With the checkpoint's ``sampling["passes"]`` P > 1 the frame is sampled P times (pass 0 with ``seed``, as a
     single pass; pass k with the seed sequence (seed, k)), the samplings are drawn in two threads and go through the
-    network as one batch of P, and the predictions are concatenated in pass order (P x K rows).
+    network as one batch of P, and the predictions are concatenated in pass order (P x K rows). ``sampling["fps"]``
+    "tree": the tree-based FPS on every sampling level (:class:`detector.checkpoint.SamplingConfig`).
     """
     model = checkpoint.model
     dev = torch.device(device) if device else next(model.parameters()).device
     model.to(dev).eval()
-    passes = int((getattr(checkpoint, "sampling", None) or {}).get("passes", 1))
+    sampling = getattr(checkpoint, "sampling", None) or {}
+    passes, tree_fps = int(sampling.get("passes", 1)), sampling.get("fps", "trained") == "tree"
     seeds = [seed] + [[seed, k] for k in range(1, passes)]
 
     def predict(frame) -> Predictions:
@@ -80,7 +82,7 @@ def network_predictor(checkpoint, seed: int = 0, device: str | None = None) -> P
         def draw(pass_seed):
             return inference_batch(frame.features, checkpoint.model_config, checkpoint.num_points, pass_seed,
                                    normalisation=checkpoint.normalisation or None, precompute=dev.type == "cpu",
-                                   plane_keep=checkpoint.plane_keep)
+                                   plane_keep=checkpoint.plane_keep, tree_fps=tree_fps)
 
         if passes == 1:
             batches = [draw(seeds[0])]
