@@ -28,9 +28,9 @@ def main() -> None:
     ap.add_argument("--min-visib", type=float, default=0.1)
     a = ap.parse_args()
     torch.set_num_threads(1)
-    # a stage-1 run's last.pt or a two-stage model.pt: its stage 1 is the model, sampling a frame once (the counts
-    # below are of one draw's points, the centres of 3 votes)
-    ck = load_checkpoint(a.ckpt, sampling={"passes": 1})
+    # a stage-1 run's last.pt or a two-stage model.pt: its stage 1 is the model, sampling a frame once and as it
+    # trained (the counts below are of one draw's points, its keypoints by the training's FPS, the centres of 3 votes)
+    ck = load_checkpoint(a.ckpt, sampling={"passes": 1, "fps": "trained"})
     pred = network_predictor(ck)
     objs = ObjectInfo.from_table(ck.objects)
     errs, found, total = [], 0, 0

@@ -50,11 +50,11 @@ def test_split_sets_routes_geometry_sampling_and_stage2_settings():
 def test_shipped_models_sample_as_they_trained_and_a_stored_density_is_applied(tmp_path):
     import torch
 
-    # both store density 1: they sample as trained (4096 points, 1024 keypoints, the training's FPS); lm8.pt twice,
-    # ycbv3.pt (which stores no passes, as models made before the setting) once
+    # both store density 1: they draw as many points as they trained on (4096 points, 1024 keypoints), and both find
+    # the farthest points with the tree-based FPS; lm8.pt samples twice, ycbv3.pt once
     for name, passes in (("lm8.pt", 2), ("ycbv3.pt", 1)):
         ck = load_checkpoint(CHECKPOINTS / name)
-        assert ck.sampling == {"density": 1.0, "passes": passes, "fps": "trained"}
+        assert ck.sampling == {"density": 1.0, "passes": passes, "fps": "tree"}
         assert (ck.num_points, ck.model_config.npoints[0]) == (4096, 1024)
         assert ck.num_points == int(ck.extra["train_config"]["num_points"])
     payload = torch.load(CHECKPOINTS / "lm8.pt", map_location="cpu", weights_only=False)

@@ -19,10 +19,13 @@ mkdir -p "$OUT"
 P=runs/lm8_prev
 # sets_of "KEY=VALUE ...": those settings as --set options, into the array SETS
 sets_of() { SETS=(); local kv; for kv in $1; do SETS+=(--set "$kv"); done; }
-# Those studies, and every run of steps 7-9, were measured with stage 1 sampling a frame once and a centre from 3
-# votes (ONEPASS: the inference before 2026-12-06; the default is now two passes and 5 votes): their model files keep
-# it (PRIOR, at training)
-ONEPASS="sampling.passes=1 geometry.min_votes=3"
+# Those studies, and every run of steps 7-9, were measured with stage 1 sampling a frame once, a centre from 3 votes
+# and the training's farthest point sampling (ONEPASS: the inference before 2026-12-06; the default is now two passes,
+# 5 votes and the tree-based FPS): their model files keep it (PRIOR, at training)
+ONEPASS="sampling.passes=1 geometry.min_votes=3 sampling.fps=trained"
+# lm8.pt's two passes with the training's farthest point sampling (its inference on 2026-12-06 before the tree-based
+# FPS; step 4a's studies of that day were measured with it)
+TRAINED="sampling.fps=trained"
 sets_of "$ONEPASS"; PRIOR=("${SETS[@]}")
 train_previous() {
   if [ -f "$P/two_stage.yaml" ] && [ ! -f "$P/model.pt" ]; then
@@ -45,13 +48,13 @@ train_beside() {
   fi
 }
 # eval_run RUN LABELS REPORT "KEY=VALUE ..." [EVAL OPTIONS]: RUN's detector eval --icp with those --set values into
-# the folder REPORT, unless it holds a report that records its sampling passes (one written before 2026-12-06 does
-# not, and may be of runs/lm8's one-pass inference of then: it is made again)
+# the folder REPORT, unless it holds a report that records its farthest point sampling (one written before the
+# tree-based FPS, 2026-12-06, does not, and may be of runs/lm8's inference of then: it is made again)
 eval_run() {
   local r=$1 data=$2 rep=$3
   sets_of "$4"
   shift 4
-  grep -qs '"passes"' "$rep/report.json" || $D eval "$r/model.pt" "$data" --out "$rep" --icp --quiet "${SETS[@]}" "$@"
+  grep -qs '"fps"' "$rep/report.json" || $D eval "$r/model.pt" "$data" --out "$rep" --icp --quiet "${SETS[@]}" "$@"
 }
 # eval_captures RUN [SUFFIX EVAL OPTIONS...]: RUN/model.pt with ICP on both test and both validation captures, into
 # reports/NAME-CAPTURE (NAME: RUN's folder name, then SUFFIX), each report once (steps 7-9)
@@ -125,15 +128,18 @@ for seed in 0 1 2 3; do
   for d in lm_val lchf_val; do eval_run runs/lm8 "$OUT/$d.h5" "reports/lm8_${d}_seed$seed" "" --seed $seed; done
 done
 
-# 4a. lm8.pt's inference (RESULTS.md, "Two sampling passes"): the same weights with one sampling pass and a centre
-#     from 3 votes (its inference until 2026-12-06), also from 2 votes, also with a third crop (`infer.recentre=2`),
-#     and two passes with a centre from 4 or 6 votes, and the frame's depth choosing among ICP's results (RESULTS.md,
-#     "The depth choosing among ICP's results") or ICP's result from the detection's own pose kept unless another fits
-#     5 or 10 % better, on the validation captures with sampling seeds 0-3 and on the real frames without LineMOD
-#     objects; one pass, the depth's choice and the 10 % own-pose margin also on the test captures (seeds 0-1 and 0-2)
-for a in "onepass:$ONEPASS" "onepass_votes2:sampling.passes=1 $G.min_votes=2" \
-         "onepass_recentre2:$ONEPASS infer.recentre=2" "votes4:$G.min_votes=4" "votes6:$G.min_votes=6" \
-         "icp_depth:$G.icp_depth_margin=0.1" "own0.05:$G.icp_own_margin=0.05" "own0.1:$G.icp_own_margin=0.1"; do
+# 4a. lm8.pt's inference (RESULTS.md, "Two sampling passes" and "The tree-based FPS at inference"): the same weights
+#     with the training's farthest point sampling (TRAINED: its inference before the tree-based FPS), and with it: one
+#     sampling pass and a centre from 3 votes (its inference until 2026-12-06), also from 2 votes, also with a third
+#     crop (`infer.recentre=2`), and two passes with a centre from 4 or 6 votes, and the frame's depth choosing among
+#     ICP's results (RESULTS.md, "The depth choosing among ICP's results") or ICP's result from the detection's own
+#     pose kept unless another fits 5 or 10 % better, on the validation captures with sampling seeds 0-3 and on the
+#     real frames without LineMOD objects; the training's FPS, one pass, the depth's choice and the 10 % own-pose
+#     margin also on the test captures (seeds 0-1 and 0-2)
+for a in "trained:$TRAINED" "onepass:$ONEPASS" "onepass_votes2:sampling.passes=1 $G.min_votes=2 $TRAINED" \
+         "onepass_recentre2:$ONEPASS infer.recentre=2" "votes4:$G.min_votes=4 $TRAINED" \
+         "votes6:$G.min_votes=6 $TRAINED" "icp_depth:$G.icp_depth_margin=0.1 $TRAINED" \
+         "own0.05:$G.icp_own_margin=0.05 $TRAINED" "own0.1:$G.icp_own_margin=0.1 $TRAINED"; do
   for seed in 0 1 2 3; do
     for d in lm_val lchf_val; do
       eval_run runs/lm8 "$OUT/$d.h5" "reports/lm8_${a%%:*}_${d}_seed$seed" "${a#*:}" --seed $seed
@@ -142,18 +148,23 @@ for a in "onepass:$ONEPASS" "onepass_votes2:sampling.passes=1 $G.min_votes=2" \
   sets_of "${a#*:}"
   false_alarms runs/lm8/model.pt "${SETS[@]}"
 done
-for d in lm_test:test lchf_test:lchf; do
-  eval_run runs/lm8 "$OUT/${d%%:*}.h5" "reports/lm8_onepass_${d#*:}" "$ONEPASS"
+for a in "trained:$TRAINED" "onepass:$ONEPASS"; do
+  for d in lm_test:test lchf_test:lchf; do
+    eval_run runs/lm8 "$OUT/${d%%:*}.h5" "reports/lm8_${a%%:*}_${d#*:}" "${a#*:}"
+  done
+  eval_run runs/lm8 "$OUT/lm_test.h5" "reports/lm8_${a%%:*}_test_seed1" "${a#*:}" --seed 1
+  for seed in 1 2; do
+    eval_run runs/lm8 "$OUT/lchf_test.h5" "reports/lm8_${a%%:*}_lchf_seed$seed" "${a#*:}" --seed $seed
+  done
 done
-eval_run runs/lm8 "$OUT/lm_test.h5" reports/lm8_onepass_test_seed1 "$ONEPASS" --seed 1
-for seed in 1 2; do eval_run runs/lm8 "$OUT/lchf_test.h5" reports/lm8_onepass_lchf_seed$seed "$ONEPASS" --seed $seed; done
 for v in icp_depth:icp_depth_margin own0.1:icp_own_margin; do
   for d in lm_test:test lchf_test:lchf; do
-    eval_run runs/lm8 "$OUT/${d%%:*}.h5" "reports/lm8_${v%%:*}_${d#*:}" "$G.${v#*:}=0.1"
+    eval_run runs/lm8 "$OUT/${d%%:*}.h5" "reports/lm8_${v%%:*}_${d#*:}" "$G.${v#*:}=0.1 $TRAINED"
   done
-  eval_run runs/lm8 "$OUT/lm_test.h5" "reports/lm8_${v%%:*}_test_seed1" "$G.${v#*:}=0.1" --seed 1
+  eval_run runs/lm8 "$OUT/lm_test.h5" "reports/lm8_${v%%:*}_test_seed1" "$G.${v#*:}=0.1 $TRAINED" --seed 1
   for seed in 1 2; do
-    eval_run runs/lm8 "$OUT/lchf_test.h5" "reports/lm8_${v%%:*}_lchf_seed$seed" "$G.${v#*:}=0.1" --seed $seed
+    eval_run runs/lm8 "$OUT/lchf_test.h5" "reports/lm8_${v%%:*}_lchf_seed$seed" "$G.${v#*:}=0.1 $TRAINED" \
+      --seed $seed
   done
 done
 

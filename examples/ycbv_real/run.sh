@@ -22,16 +22,25 @@ T="$RUN.times.txt"
 # stage 1 samples a frame once, a centre from 3 votes: checkpoints/ycbv3.pt's inference (the default since 2026-12-06,
 # two passes and 5 votes, did not clearly help on these frames: RESULTS.md)
 INFER=(--set sampling.passes=1 --set geometry.min_votes=3)
+# the studies of steps 6-7 (all but step 6c's default and tree-FPS rows) were measured with the training's farthest
+# point sampling at inference, before the tree-based one became the default (RESULTS.md): their evaluations and the
+# model files they train keep it (BEFORE)
+BEFORE=(--set sampling.fps=trained)
+# fresh REPORT: REPORT holds a report that records its farthest point sampling (one written before 2026-12-06 does
+# not, and may be of the default inference of then: it is made again)
+fresh() { grep -qs '"fps"' "$1/report.json"; }
 step() { local name=$1; shift; local t0; t0=$(date +%s); "$@"; echo "$name $(( $(date +%s) - t0 )) s" >> "$T"; }
 # train_beside KEEP R YAML [TRAIN OPTIONS]: the run folder R holds a copy of the run's finished stage KEEP (stage1 or
 # stage2) and YAML as its two_stage.yaml, and is trained on the capture with distractors (resumed: the finished stage
-# is not trained again), unless its model.pt exists (steps 6d, 6e, 6f and 7); with the run's inference (INFER)
+# is not trained again), unless its model.pt exists (steps 6d, 6e, 6f and 7); with the run's inference (INFER) and the
+# training's farthest point sampling (BEFORE)
 train_beside() {
   local keep=$1 r=$2 yaml=$3; shift 3
   if [ ! -f "$r/model.pt" ]; then
     [ -d "$r/$keep" ] || { mkdir -p "$r" && cp -r "$RUN/$keep" "$r/"; }
     printf '%s\n' "$yaml" > "$r/two_stage.yaml"
-    $D train "$OUT/ycbv_train.h5" "$@" --set stage2.narrow_steps=0 "${INFER[@]}" --out "$r" --resume --quiet
+    $D train "$OUT/ycbv_train.h5" "$@" --set stage2.narrow_steps=0 "${INFER[@]}" "${BEFORE[@]}" --out "$r" --resume \
+      --quiet
   fi
 }
 
@@ -85,7 +94,7 @@ for a in "neither:$G.depth_check=false $G.other_classes=2 $G.colour_check=false 
          "no_colour_check:$G.colour_check=false $OLD" "all_three:$OLD" \
          "other_classes_0.05:$G.other_classes=0.05 $OLD" "other_classes_0.2:$G.other_classes=0.2 $OLD" \
          "half_turns_30_iterations:$G.icp_iterations=30" "no_half_turns:$G.icp_half_turns=false"; do
-  name=${a%%:*}; sets=()
+  name=${a%%:*}; sets=("${BEFORE[@]}")
   for kv in ${a#*:}; do sets+=(--set "$kv"); done
   [ -f "$REP/inference_$name/report.json" ] || \
     $D eval "$RUN/model.pt" "$OUT/ycbv_real.h5" --out "$REP/inference_$name" --icp --min-visib 0 --quiet "${sets[@]}"
@@ -97,23 +106,25 @@ done
 [ -f "$OUT/ycbv_simtest.h5" ] || $A label "$OUT/ycbv_simtest" --out "$OUT/ycbv_simtest.h5" --max-depth 1.5 --quiet
 for c in true false; do
   [ -f "$REP/simtest_colour_check_$c/report.json" ] || $D eval "$RUN/model.pt" "$OUT/ycbv_simtest.h5" \
-    --out "$REP/simtest_colour_check_$c" --icp --quiet --set geometry.colour_check=$c
+    --out "$REP/simtest_colour_check_$c" --icp --quiet --set geometry.colour_check=$c "${BEFORE[@]}"
 done
 # 6c. the sampling seed (RESULTS.md): which points stage 1 sees and stage 2's RANSAC draws, seeds 0-7, for the
 #     default inference, ICP before its half turns, a stage-1 centre from 2 votes and stage 1 sampling 1.25 times as
 #     densely as it trained, also with a centre from 4 votes (RESULTS.md, lm8's "Stage 1's sampling density"), and
 #     the poses after ICP held to 95 % depth consistency (RESULTS.md, lm8's "A stricter depth check after ICP"), and
 #     stage 1 sampling the frame twice with a centre from 5 votes (lm8's "Two sampling passes"), and ICP's result chosen
-#     by the frame's depth or kept from the detection's own pose (lm8's "The depth choosing among ICP's results");
-#     mean and range of each
-for a in "default:" "before_half_turns:$OLD" "min_votes_2:$G.min_votes=2" "density_1.25:sampling.density=1.25" \
+#     by the frame's depth or kept from the detection's own pose (lm8's "The depth choosing among ICP's results"), all
+#     of these with the training's farthest point sampling (BEFORE), as the default was before the tree-based one,
+#     which is measured too (the default row); mean and range of each
+for a in "default:" "trained_fps:" "before_half_turns:$OLD" "min_votes_2:$G.min_votes=2" "density_1.25:sampling.density=1.25" \
          "density_1.25_min_votes_4:sampling.density=1.25 $G.min_votes=4" \
          "refined_consistent_0.95:$G.depth_consistent_refined=0.95" "passes_2:sampling.passes=2 $G.min_votes=5" \
          "icp_depth_0.1:$G.icp_depth_margin=0.1" "icp_own_0.1:$G.icp_own_margin=0.1"; do
   name=${a%%:*}; sets=()
+  [ "$name" = default ] || sets=("${BEFORE[@]}")
   for kv in ${a#*:}; do sets+=(--set "$kv"); done
   for seed in 0 1 2 3 4 5 6 7; do
-    [ -f "$REP/seeds/$name-$seed/report.json" ] || $D eval "$RUN/model.pt" "$OUT/ycbv_real.h5" \
+    fresh "$REP/seeds/$name-$seed" || $D eval "$RUN/model.pt" "$OUT/ycbv_real.h5" \
       --out "$REP/seeds/$name-$seed" --icp --min-visib 0 --quiet --seed $seed "${sets[@]}"
   done
 done
@@ -191,10 +202,11 @@ for a in "no_part_turns:$r" "no_part_check:$RUN"; do
   name=${a%%:*}; m=${a#*:}
   for seed in 0 1 2 3 4 5 6 7; do
     [ -f "$REP/seeds_parts/$name-$seed/report.json" ] || $D eval "$m/model.pt" "$OUT/ycbv_real.h5" \
-      --out "$REP/seeds_parts/$name-$seed" --icp --min-visib 0 --quiet --seed $seed --set geometry.part_check=false
+      --out "$REP/seeds_parts/$name-$seed" --icp --min-visib 0 --quiet --seed $seed --set geometry.part_check=false \
+      "${BEFORE[@]}"
   done
   [ -f "$REP/simtest_$name/report.json" ] || $D eval "$m/model.pt" "$OUT/ycbv_simtest.h5" --out "$REP/simtest_$name" \
-    --icp --quiet --set geometry.part_check=false
+    --icp --quiet --set geometry.part_check=false "${BEFORE[@]}"
 done
 .venv/bin/python examples/ycbv_real/seeds.py "$REP/seeds_parts"
 for m in "$RUN" "$r"; do
