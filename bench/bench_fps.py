@@ -1,6 +1,7 @@
 """Benchmark stage 1's farthest point sampling on CPU: fpsample's exact loop from index 0 against its tree-based
 exact FPS (``bucket_fps_kdline``, what :func:`detector.stage1.ops.fps_numpy` uses on clouds of
-more than ``EXACT_FPS_MAX_POINTS`` points), and the whole of :func:`detector.stage1.ops.precompute_indices` per size.
+more than ``EXACT_FPS_MAX_POINTS`` points, and at inference on every cloud with ``sampling.fps: tree``), and the whole
+of :func:`detector.stage1.ops.precompute_indices` per size as training computes it (the loop up to 4096 points).
 
     .venv/bin/python bench/bench_fps.py [--data data/lm_test.h5] [--frames 20] [--rounds 3]
 

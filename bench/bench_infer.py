@@ -10,7 +10,8 @@ Usage: .venv/bin/python bench/bench_infer.py [--data FILE.h5] [--checkpoint CKPT
 
 ``--set`` changes the checkpoint's geometry and sampling settings as ``detector eval --set`` does (e.g. the
 inference without the depth check and the other classes: ``--set geometry.depth_check=false --set
-geometry.other_classes=2``; stage 1 sampling as it trained: ``--set sampling.density=1``).
+geometry.other_classes=2``; stage 1 drawing as many points as it trained on: ``--set sampling.density=1``; with the
+training's farthest point sampling instead of the tree-based one: ``--set sampling.fps=trained``).
 
 Sampling + network: a checkpoint (or a randomly initialised network of each ``--preset``, same cost) on the
 label file's frames (median over frames after one warm-up). A random network's output is noise, so the
@@ -142,7 +143,8 @@ def main() -> None:
     ap.add_argument("--threads", type=int, default=0, help="torch CPU threads (0: torch's default)")
     ap.add_argument("--set", dest="sets", action="append", default=[],
                     help="a geometry, sampling or stage-2 inference setting of the checkpoint, "
-                         "geometry.KEY=VALUE, sampling.density=D or infer.KEY=VALUE (two-stage checkpoints)")
+                         "geometry.KEY=VALUE, sampling.density=D, sampling.passes=N, sampling.fps=trained|tree or "
+                         "infer.KEY=VALUE (two-stage checkpoints)")
     args = ap.parse_args()
 
     import torch

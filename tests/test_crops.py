@@ -773,8 +773,8 @@ def test_two_stage_train_resume_eval_predict(labels, tmp_path):
     # predicts at each
     density = SamplingConfig(1.5)
     assert DEFAULTS["sampling"]["density"] == 1
-    default_fps = SamplingConfig.from_dict(DEFAULTS["sampling"]).fps
-    assert ck.sampling == {"density": 1.5, "passes": DEFAULTS["sampling"]["passes"], "fps": default_fps}
+    assert DEFAULTS["sampling"]["fps"] == "tree"  # models trained now find their keypoints with the tree-based FPS
+    assert ck.sampling == {"density": 1.5, "passes": DEFAULTS["sampling"]["passes"], "fps": "tree"}
     trained = load_checkpoint(out / "model.pt", sampling={"density": 1})
     assert trained.num_points == 1024 and ck.num_points == density.scaled(1024) > 1024
     assert ck.model_config.npoints[0] == density.scaled(trained.model_config.npoints[0]) > \

@@ -578,3 +578,6 @@ def test_sampling_fps_tree_predicts_at_the_tree_fps_keypoints_of_the_same_draw(r
     assert np.array_equal(a.xyz, drawn[loop].astype(np.float64))
     assert np.array_equal(b.xyz, drawn[tree_order].astype(np.float64))
     assert not np.array_equal(a.xyz, b.xyz)
+    # two passes (drawn in two threads): the first pass's keypoints are the single pass's tree ones
+    two = network_predictor(load_checkpoint(random_checkpoint, sampling={"fps": "tree", "passes": 2}), 5)(frame)
+    assert np.array_equal(two.xyz[:len(b.xyz)], b.xyz) and len(two.xyz) == 2 * len(b.xyz)

@@ -115,6 +115,9 @@ def test_tree_fps_on_request_is_exact_on_every_cloud_size_and_matches_fpsample_t
         assert len(set(got.tolist())) == m and np.all(fps_gaps(q, got) <= 1e-6)
         if n < 2 ** TREE_FPS_HEIGHT:  # under the tree's least size: the loop from index 0
             np.testing.assert_array_equal(got, naive_fps(q, m))
+        else:  # from the tree's least size on: the tree
+            tree_q = fpsample.bucket_fps_kdline_sampling(q, m, h=TREE_FPS_HEIGHT, start_idx=0).astype(np.int64)
+            np.testing.assert_array_equal(got, tree_q)
     idx = precompute_indices(p, [(1024, 0.1, 8), (256, 0.2, 8)], tree_fps=True)
     np.testing.assert_array_equal(idx["sample_0"], order)
     np.testing.assert_array_equal(idx["sample_1"], fps_numpy(p[order], 256, tree=True))

@@ -47,7 +47,7 @@ def test_split_sets_routes_geometry_sampling_and_stage2_settings():
             split_sets([bad])
 
 
-def test_shipped_models_sample_as_they_trained_and_a_stored_density_is_applied(tmp_path):
+def test_shipped_models_draw_as_trained_with_the_tree_fps_and_a_stored_density_is_applied(tmp_path):
     import torch
 
     # both store density 1: they draw as many points as they trained on (4096 points, 1024 keypoints), and both find

@@ -54,7 +54,7 @@ eval_run() {
   local r=$1 data=$2 rep=$3
   sets_of "$4"
   shift 4
-  grep -qs '"fps"' "$rep/report.json" || $D eval "$r/model.pt" "$data" --out "$rep" --icp --quiet "${SETS[@]}" "$@"
+  grep -qs '"fps": "' "$rep/report.json" || $D eval "$r/model.pt" "$data" --out "$rep" --icp --quiet "${SETS[@]}" "$@"
 }
 # eval_captures RUN [SUFFIX EVAL OPTIONS...]: RUN/model.pt with ICP on both test and both validation captures, into
 # reports/NAME-CAPTURE (NAME: RUN's folder name, then SUFFIX), each report once (steps 7-9)
@@ -122,6 +122,11 @@ $D eval runs/lm8/model.pt "$OUT/lm_test.h5"   --out reports/lm8_test  --icp --qu
 $D eval runs/lm8/model.pt "$OUT/lchf_test.h5" --out reports/lm8_lchf  --icp --quiet
 #    where the missed instances of the linemod test set were lost (RESULTS.md, "Where it falls short")
 .venv/bin/python bench/probe_misses.py runs/lm8/model.pt "$OUT/lm_test.h5" reports/lm8_test/report.json
+#    and with the training's FPS, its inference until 2026-12-06 (step 4a writes reports/lm8_trained_test)
+eval_run runs/lm8 "$OUT/lm_test.h5" reports/lm8_trained_test "$TRAINED"
+sets_of "$TRAINED"
+.venv/bin/python bench/probe_misses.py runs/lm8/model.pt "$OUT/lm_test.h5" reports/lm8_trained_test/report.json \
+  "${SETS[@]}"
 eval_run runs/lm8 "$OUT/lm_test.h5" reports/lm8_test_seed1 "" --seed 1
 for seed in 1 2; do eval_run runs/lm8 "$OUT/lchf_test.h5" reports/lm8_lchf_seed$seed "" --seed $seed; done
 for seed in 0 1 2 3; do
@@ -252,10 +257,11 @@ if [ "${PREVIOUS:-0}" = 1 ]; then
   done
   false_alarms $P/model.pt --set "$STRICT"
 fi
-# 6c. the working volume (RESULTS.md): the test capture labelled with every point, not only those within the
+# 6c. the working volume (RESULTS.md; also with the training's FPS): the test capture labelled with every point, not only those within the
 #     1.75 m of the training labels
 [ -f "$OUT/lm_test_all.h5" ] || $A label "$OUT/lm_test" --out "$OUT/lm_test_all.h5" --max-depth 20 --quiet
 eval_run runs/lm8 "$OUT/lm_test_all.h5" reports/lm8_test_all ""
+eval_run runs/lm8 "$OUT/lm_test_all.h5" reports/lm8_trained_test_all "$TRAINED"
 
 # 7. training length (RESULTS.md, "Training length"): stage 2 alone trained again beside the previous lm8.pt's
 #    stage 1 (runs/lm8_prev) for 13000 steps (the lm8.pt before it, about 29 minutes), and stage 1 alone for 4000

@@ -66,6 +66,8 @@ def main() -> None:
     ap.add_argument("labels")
     ap.add_argument("obj_id", type=int)
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--fps", choices=["trained", "tree"], default=None,
+                    help="stage 1's farthest point sampling (sampling.fps; default: the model file's)")
     a = ap.parse_args()
     try:
         with LabelFile(a.labels) as lf:
@@ -74,7 +76,7 @@ def main() -> None:
         if not len(turns):
             raise ValueError(f"{a.labels} stores no part symmetry (an axis) for object {a.obj_id}")
         axis, offset = turn_axis(np.asarray(turns[0], np.float64))
-        ck = load_checkpoint(a.model)
+        ck = load_checkpoint(a.model, sampling={"fps": a.fps} if a.fps else None)
     except (OSError, ValueError, KeyError, IndexError, ArgenError, DetectorError) as exc:
         sys.exit(f"mug_probe: {exc}")
     objects, _ = checkpoint_objects(ck)

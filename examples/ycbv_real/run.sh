@@ -28,7 +28,7 @@ INFER=(--set sampling.passes=1 --set geometry.min_votes=3)
 BEFORE=(--set sampling.fps=trained)
 # fresh REPORT: REPORT holds a report that records its farthest point sampling (one written before 2026-12-06 does
 # not, and may be of the default inference of then: it is made again)
-fresh() { grep -qs '"fps"' "$1/report.json"; }
+fresh() { grep -qs '"fps": "' "$1/report.json"; }  # the sampling's FPS, a string (frames per second: a number)
 step() { local name=$1; shift; local t0; t0=$(date +%s); "$@"; echo "$name $(( $(date +%s) - t0 )) s" >> "$T"; }
 # train_beside KEEP R YAML [TRAIN OPTIONS]: the run folder R holds a copy of the run's finished stage KEEP (stage1 or
 # stage2) and YAML as its two_stage.yaml, and is trained on the capture with distractors (resumed: the finished stage
@@ -211,6 +211,6 @@ for a in "no_part_turns:$r" "no_part_check:$RUN"; do
 done
 .venv/bin/python examples/ycbv_real/seeds.py "$REP/seeds_parts"
 for m in "$RUN" "$r"; do
-  .venv/bin/python examples/ycbv_real/mug_probe.py "$m/model.pt" "$OUT/ycbv_real.h5" 14
+  .venv/bin/python examples/ycbv_real/mug_probe.py "$m/model.pt" "$OUT/ycbv_real.h5" 14 --fps trained
 done
 cat "$T"
