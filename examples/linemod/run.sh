@@ -141,7 +141,8 @@ done
 #     pose kept unless another fits 5 or 10 % better, on the validation captures with sampling seeds 0-3 and on the
 #     real frames without LineMOD objects; then, with the tree-based FPS, three passes with a centre from 6 or 7 votes,
 #     stage 2 verifying 32 of its RANSAC hypotheses instead of 16, 256 hypotheses instead of 128, 30 ICP iterations
-#     instead of 20 (RESULTS.md, "Spending the time the tree-based FPS freed"); the training's FPS, one pass, the
+#     instead of 20, the second crop in 2 subsets instead of 3, alone and with the 32 verified hypotheses (RESULTS.md,
+#     "Spending the time the tree-based FPS freed"); the training's FPS, one pass, the
 #     32 verified hypotheses, the depth's choice and the 10 % own-pose margin also on the test captures (seeds 0-1 and
 #     0-2)
 for a in "trained:$TRAINED" "onepass:$ONEPASS" "onepass_votes2:sampling.passes=1 $G.min_votes=2 $TRAINED" \
@@ -149,7 +150,8 @@ for a in "trained:$TRAINED" "onepass:$ONEPASS" "onepass_votes2:sampling.passes=1
          "votes6:$G.min_votes=6 $TRAINED" "icp_depth:$G.icp_depth_margin=0.1 $TRAINED" \
          "own0.05:$G.icp_own_margin=0.05 $TRAINED" "own0.1:$G.icp_own_margin=0.1 $TRAINED" \
          "passes3_votes6:sampling.passes=3 $G.min_votes=6" "passes3_votes7:sampling.passes=3 $G.min_votes=7" \
-         "verify32:infer.verify=32" "hyp256:infer.hypotheses=256" "icp30:$G.icp_iterations=30"; do
+         "verify32:infer.verify=32" "hyp256:infer.hypotheses=256" "icp30:$G.icp_iterations=30" \
+         "samples2:infer.samples=2" "samples2_verify32:infer.samples=2 infer.verify=32"; do
   for seed in 0 1 2 3; do
     for d in lm_val lchf_val; do
       eval_run runs/lm8 "$OUT/$d.h5" "reports/lm8_${a%%:*}_${d}_seed$seed" "${a#*:}" --seed $seed
