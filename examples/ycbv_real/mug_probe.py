@@ -21,7 +21,7 @@ import numpy as np
 from argen.errors import ArgenError
 from argen.h5 import LabelFile
 from argen.models.symmetry import rotation_angle_axis
-from detector.checkpoint import load_checkpoint
+from detector.checkpoint import FPS_CHOICES, load_checkpoint
 from detector.errors import DetectorError
 from detector.geometry.icp import support_radius
 from detector.geometry.verify import depth_votes, range_image
@@ -66,7 +66,7 @@ def main() -> None:
     ap.add_argument("labels")
     ap.add_argument("obj_id", type=int)
     ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--fps", choices=["trained", "tree"], default=None,
+    ap.add_argument("--fps", choices=FPS_CHOICES, default=None,
                     help="stage 1's farthest point sampling (sampling.fps; default: the model file's)")
     a = ap.parse_args()
     try:
