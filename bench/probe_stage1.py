@@ -1,6 +1,7 @@
 """Stage-1 check: how far a two-stage model's stage-1 centres are from the true box centres (the crop jitter
 stage 2 must forgive), how many instances get a centre at all, and per object how many of its sampled points
-stage 1 labels right (and how many background points it takes for an object). Usage:
+stage 1 labels right (and how many background points it takes for an object), and which object it takes each
+object's instances for (the most common object label among an instance's sampled points). Usage:
 python bench/probe_stage1.py CKPT LABELS [--frames N] [--min-visib V] (CKPT: a stage-1 run's last.pt or a
 two-stage model.pt)."""
 
@@ -36,6 +37,7 @@ def main() -> None:
     errs, found, total = [], 0, 0
     points = {}  # obj_id: [instances, sampled points, labelled right, centre found]
     false_fg = sampled = 0
+    taken_for = {}  # obj_id: {object label most of its instance's points get (0: none): instances}
     with LabelFile(a.labels) as lf:
         for i in range(min(a.frames, lf.num_frames)):
             f = lf.frame(i)
@@ -64,6 +66,10 @@ def main() -> None:
                 row[1] += int(mine.sum())
                 row[2] += int(np.sum(mine & (pred_ids == oid)))
                 row[3] += int(hit)
+                labels = pred_ids[mine & (pred_ids > 0)]
+                top = int(np.bincount(labels).argmax()) if len(labels) else 0
+                taken_for.setdefault(oid, {}).setdefault(top, 0)
+                taken_for[oid][top] += 1
     e = np.array(errs) * 100
     print(f"{total} instances, {found} with a centre within 10 cm ({100 * found / max(total, 1):.1f} %); "
           f"centre error cm: median {np.median(e):.2f}, p90 {np.percentile(e, 90):.2f}, "
@@ -73,6 +79,12 @@ def main() -> None:
     print("|---|---:|---:|---:|---:|")
     for oid, (n, pts, right, hit) in sorted(points.items()):
         print(f"| {oid} | {n} | {pts} | {right} ({100 * right / max(pts, 1):.0f} %) | {hit} |")
+    print("\nwhich object each object's instances are taken for (the most common object label among an instance's")
+    print("sampled points; 0: none of them labelled an object)")
+    print("| object | instances: taken for (count) |")
+    print("|---|---|")
+    for oid, row in sorted(taken_for.items()):
+        print(f"| {oid} | " + ", ".join(f"{k} ({v})" for k, v in sorted(row.items(), key=lambda kv: -kv[1])) + " |")
 
 
 if __name__ == "__main__":
