@@ -20,6 +20,16 @@ from detector.geometry.voting import detect
 from detector.stage1.predictor import network_predictor
 
 
+def taken_object(labels: np.ndarray, own: int) -> int:
+    """The object an instance is taken for: the most common object label among its sampled points' labels
+    (labels: (n,) int, 0 = background), its own object ``own`` where that ties for the most, 0 where no point
+    is labelled an object."""
+    counts = np.bincount(labels[labels > 0], minlength=own + 1)
+    if not counts.any():
+        return 0
+    return own if counts[own] == counts.max() else int(counts.argmax())
+
+
 def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("ckpt")
@@ -66,10 +76,10 @@ def main() -> None:
                 row[1] += int(mine.sum())
                 row[2] += int(np.sum(mine & (pred_ids == oid)))
                 row[3] += int(hit)
-                labels = pred_ids[mine & (pred_ids > 0)]
-                top = int(np.bincount(labels).argmax()) if len(labels) else 0
-                taken_for.setdefault(oid, {}).setdefault(top, 0)
-                taken_for[oid][top] += 1
+                if mine.any():  # an instance none of whose points were sampled is in neither table's counts
+                    taken = taken_for.setdefault(oid, {})
+                    top = taken_object(pred_ids[mine], oid)
+                    taken[top] = taken.get(top, 0) + 1
     e = np.array(errs) * 100
     print(f"{total} instances, {found} with a centre within 10 cm ({100 * found / max(total, 1):.1f} %); "
           f"centre error cm: median {np.median(e):.2f}, p90 {np.percentile(e, 90):.2f}, "
@@ -80,7 +90,8 @@ def main() -> None:
     for oid, (n, pts, right, hit) in sorted(points.items()):
         print(f"| {oid} | {n} | {pts} | {right} ({100 * right / max(pts, 1):.0f} %) | {hit} |")
     print("\nwhich object each object's instances are taken for (the most common object label among an instance's")
-    print("sampled points; 0: none of them labelled an object)")
+    print("sampled points, its own where that ties; 0: none of them labelled an object; instances without sampled")
+    print("points left out)")
     print("| object | instances: taken for (count) |")
     print("|---|---|")
     for oid, row in sorted(taken_for.items()):

@@ -29,3 +29,23 @@ def ycbv_real() -> Path:
     if not (YCBV_REAL_DIR / "test" / "000000" / "scene_gt.json").is_file():
         pytest.skip("shared ycbv_real data not available")
     return YCBV_REAL_DIR
+
+
+def load_repo_script(rel: str):
+    """A script of the repository (e.g. ``bench/probe_stage1.py``) imported as a module named after its file; the
+    module is registered in ``sys.modules`` first (dataclasses look their module up while a class is built)."""
+    import importlib.util
+    import sys
+
+    path = REPO / rel
+    spec = importlib.util.spec_from_file_location(path.stem, path)
+    mod = importlib.util.module_from_spec(spec)
+    sys.modules[path.stem] = mod
+    spec.loader.exec_module(mod)
+    return mod
+
+
+@pytest.fixture(scope="session")
+def repo_script():
+    """:func:`load_repo_script` as a fixture: ``repo_script("bench/probe_misses.py")``."""
+    return load_repo_script

@@ -4,7 +4,6 @@ order; bad input is a one-line error."""
 
 from __future__ import annotations
 
-import importlib.util
 import json
 import subprocess
 import sys
@@ -21,12 +20,6 @@ from detector.geometry.types import Detection
 REPO = Path(__file__).resolve().parents[1]
 
 
-def _probe():
-    spec = importlib.util.spec_from_file_location("probe_misses", REPO / "bench" / "probe_misses.py")
-    mod = importlib.util.module_from_spec(spec)
-    sys.modules["probe_misses"] = mod
-    spec.loader.exec_module(mod)
-    return mod
 
 
 def _det(obj_id: int, R: np.ndarray, t: np.ndarray, score: float, corners: np.ndarray) -> Detection:
@@ -35,8 +28,8 @@ def _det(obj_id: int, R: np.ndarray, t: np.ndarray, score: float, corners: np.nd
                      members=np.arange(5))
 
 
-def test_miss_cause_takes_the_first_cause_that_holds():
-    p = _probe()
+def test_miss_cause_takes_the_first_cause_that_holds(repo_script):
+    p = repo_script("bench/probe_misses.py")
     rng = np.random.default_rng(0)
     model = rng.uniform(-0.05, 0.05, (500, 3))  # a 0.1 m box of points; its centre is the origin
     corners = np.concatenate([np.array([[x, y, z] for x in (-.05, .05) for y in (-.05, .05) for z in (-.05, .05)]),
@@ -67,8 +60,8 @@ def test_miss_cause_takes_the_first_cause_that_holds():
     assert set(p.CAUSES) >= {cause([], []), cause([right], [])}
 
 
-def test_missed_instances_follow_the_label_files_order_per_object():
-    p = _probe()
+def test_missed_instances_follow_the_label_files_order_per_object(repo_script):
+    p = repo_script("bench/probe_misses.py")
     rows = [{"frame": f, "obj_id": o, "diameter": d, "icp": e} for f, o, d, e in
             [(0, 5, 0.2, 0.002), (0, 5, 0.2, None), (0, 9, 0.1, 0.03), (0, 5, 0.2, 0.03), (2, 9, 0.1, 0.00999)]]
     # errors are metres, compared with the threshold times each instance's diameter

@@ -133,8 +133,8 @@ for seed in 0 1 2 3; do
   for d in lm_val lchf_val; do eval_run runs/lm8 "$OUT/$d.h5" "reports/lm8_${d}_seed$seed" "" --seed $seed; done
 done
 #    the same model on the first 120 frames of its own training capture, and which object stage 1 takes each object's
-#    instances for on the first 100 frames of the training and validation captures (RESULTS.md, "On its own training
-#    frames")
+#    instances for on the first 100 frames of the training capture and the validation capture's 90 (RESULTS.md, "On
+#    its own training frames")
 eval_run runs/lm8 "$OUT/lm_train.h5" reports/lm8_trainframes "" --frames 120
 for d in lm_train lm_val; do .venv/bin/python bench/probe_stage1.py runs/lm8/model.pt "$OUT/$d.h5" --frames 100; done
 
@@ -363,7 +363,7 @@ fi
 #     side by side (about 60 minutes on 2 cores); then its stage 2 beside lm8.pt's own stage 1 (the two finished
 #     stages copied into one run folder, which `detector train --resume` only assembles); each scored on both
 #     validation captures with sampling seeds 0-3, the test captures with seeds 0-1 and 0-2, and the real frames
-#     without LineMOD objects. Only with TRAINING_FRAMES=1.
+#     without LineMOD objects (within the working volume and with every point). Only with TRAINING_FRAMES=1.
 if [ "${TRAINING_FRAMES:-0}" = 1 ]; then
   if [ ! -f "$OUT/lm_train4k.h5" ]; then
     [ -d "$OUT/lm_train4k" ] || cp -r "$OUT/lm_train" "$OUT/lm_train4k"
@@ -388,5 +388,6 @@ if [ "${TRAINING_FRAMES:-0}" = 1 ]; then
     eval_run runs/$m "$OUT/lchf_test.h5" "reports/${m}_lchf" ""
     for seed in 1 2; do eval_run runs/$m "$OUT/lchf_test.h5" "reports/${m}_lchf_seed$seed" "" --seed $seed; done
     false_alarms runs/$m/model.pt
+    false_alarms runs/$m/model.pt --max-depth 20
   done
 fi
