@@ -4,7 +4,6 @@ millimetres with normals toward the camera, and bad input is a one-line error.""
 
 from __future__ import annotations
 
-import importlib.util
 import subprocess
 import sys
 from pathlib import Path
@@ -14,6 +13,7 @@ import numpy as np
 import pytest
 
 from argen.models.objects import builtin_objects
+from conftest import load_repo_script
 from detector.evaluation.metrics import add
 
 REPO = Path(__file__).resolve().parents[1]
@@ -22,15 +22,7 @@ if not hasattr(cv2, "ppf_match_3d_PPF3DDetector"):  # the contrib build is a dep
     pytest.skip("OpenCV without the contrib surface_matching module", allow_module_level=True)
 
 
-def _bench():
-    spec = importlib.util.spec_from_file_location("bench_ppf", REPO / "bench" / "bench_ppf.py")
-    mod = importlib.util.module_from_spec(spec)
-    sys.modules["bench_ppf"] = mod  # dataclasses look their module up while the class is built
-    spec.loader.exec_module(mod)
-    return mod
-
-
-bench = _bench()
+bench = load_repo_script("bench/bench_ppf.py")
 
 
 def _scene(obj, R: np.ndarray, t: np.ndarray, seed: int) -> np.ndarray:

@@ -806,13 +806,9 @@ def test_two_stage_train_resume_eval_predict(labels, tmp_path):
     snap = read_checkpoint(out / "stage2" / "step_000004.pt")["stage2"]
     assert snap["step"] == 4 and snap["train_state"] is None and snap["class_ids"] == ck.stage2["class_ids"]
     # examples/linemod/curve.py evaluates each snapshot (and the final weights) with the run's stage 1
-    import importlib.util
-    from pathlib import Path
+    from conftest import load_repo_script
 
-    spec = importlib.util.spec_from_file_location(
-        "curve", Path(__file__).resolve().parents[1] / "examples" / "linemod" / "curve.py")
-    curve = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(curve)
+    curve = load_repo_script("examples/linemod/curve.py")
     points = curve.curve_points(out, labels, 1, stage1_minutes=0.5)
     assert [p["step"] for p in points] == [2, 4, 5]
     minutes = [p["minutes"] for p in points]

@@ -20,8 +20,6 @@ from detector.geometry.types import Detection
 REPO = Path(__file__).resolve().parents[1]
 
 
-
-
 def _det(obj_id: int, R: np.ndarray, t: np.ndarray, score: float, corners: np.ndarray) -> Detection:
     """A detection whose control points are the model's box points (9,3) under (R, t)."""
     return Detection(obj_id=obj_id, score=score, R=R, t=t, support=5, control_points=corners @ R.T + t,

@@ -66,6 +66,19 @@ eval_captures() {
     eval_run "$r" "$OUT/$d.h5" "reports/$n-$d" "" "$@"
   done
 }
+# eval_seeds RUN NAME: RUN/model.pt with ICP on the linemod test capture with sampling seeds 0-1, the LC-HF-style
+# one with seeds 0-2 and both validation captures with seeds 0-3, into reports/NAME_test[_seed1],
+# reports/NAME_lchf[_seedS] and reports/NAME_CAPTURE_seedS, each report once (steps 4 and 10)
+eval_seeds() {
+  local r=$1 n=$2 seed d
+  eval_run "$r" "$OUT/lm_test.h5" "reports/${n}_test" ""
+  eval_run "$r" "$OUT/lm_test.h5" "reports/${n}_test_seed1" "" --seed 1
+  eval_run "$r" "$OUT/lchf_test.h5" "reports/${n}_lchf" ""
+  for seed in 1 2; do eval_run "$r" "$OUT/lchf_test.h5" "reports/${n}_lchf_seed$seed" "" --seed $seed; done
+  for seed in 0 1 2 3; do
+    for d in lm_val lchf_val; do eval_run "$r" "$OUT/$d.h5" "reports/${n}_${d}_seed$seed" "" --seed $seed; done
+  done
+}
 # false_alarms MODEL [ARGS...]: bench/false_alarms.py with ARGS on the real frames that hold none of the LineMOD
 # objects, those of them that REAL holds: the 10 ycbv_real frames and the TUM desk frame (steps 6b-8)
 R=${REAL:-../shared/data}
@@ -127,11 +140,7 @@ eval_run runs/lm8 "$OUT/lm_test.h5" reports/lm8_trained_test "$TRAINED"
 sets_of "$TRAINED"
 .venv/bin/python bench/probe_misses.py runs/lm8/model.pt "$OUT/lm_test.h5" reports/lm8_trained_test/report.json \
   "${SETS[@]}"
-eval_run runs/lm8 "$OUT/lm_test.h5" reports/lm8_test_seed1 "" --seed 1
-for seed in 1 2; do eval_run runs/lm8 "$OUT/lchf_test.h5" reports/lm8_lchf_seed$seed "" --seed $seed; done
-for seed in 0 1 2 3; do
-  for d in lm_val lchf_val; do eval_run runs/lm8 "$OUT/$d.h5" "reports/lm8_${d}_seed$seed" "" --seed $seed; done
-done
+eval_seeds runs/lm8 lm8
 #    the same model on the first 120 frames of its own training capture, and which object stage 1 takes each object's
 #    instances for on the first 100 frames of the training capture and the validation capture's 90 (RESULTS.md, "On
 #    its own training frames")
@@ -380,13 +389,7 @@ if [ "${TRAINING_FRAMES:-0}" = 1 ]; then
     $D train "$OUT/lm_train4k.h5" --out "$r" --resume --quiet
   fi
   for m in lm8_4k lm8_mix; do
-    for seed in 0 1 2 3; do
-      for d in lm_val lchf_val; do eval_run runs/$m "$OUT/$d.h5" "reports/${m}_${d}_seed$seed" "" --seed $seed; done
-    done
-    eval_run runs/$m "$OUT/lm_test.h5" "reports/${m}_test" ""
-    eval_run runs/$m "$OUT/lm_test.h5" "reports/${m}_test_seed1" "" --seed 1
-    eval_run runs/$m "$OUT/lchf_test.h5" "reports/${m}_lchf" ""
-    for seed in 1 2; do eval_run runs/$m "$OUT/lchf_test.h5" "reports/${m}_lchf_seed$seed" "" --seed $seed; done
+    eval_seeds runs/$m $m
     false_alarms runs/$m/model.pt
     false_alarms runs/$m/model.pt --max-depth 20
   done
