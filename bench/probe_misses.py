@@ -1,7 +1,9 @@
 """Where a two-stage model loses the instances that `detector eval --icp` counted as missed (no pose within
 ``--threshold`` of the diameter, ADD(-S) after ICP): for each, whether stage 1 voted a centre of its object near it,
 only a centre of another object, or one of its own whose stage-2 pose was then wrong, or right but scored under
-``min_score``. It reruns the model on the missed instances' frames with the report's settings (give eval's
+``min_score``; of the wrong poses, whether ICP from any of its starts (the stage-2 pose, its other verified
+hypotheses, its half turns) would have reached a right one, which tells ICP's choice among its results from stage 2's
+poses. It reruns the model on the missed instances' frames with the report's settings (give eval's
 ``--seed`` and ``--set``) and reads the poses before the score threshold. Usage:
 
     python bench/probe_misses.py MODEL LABELS REPORT [--seed S] [--set KEY=V ...] [--min-visib V] [--json OUT]
@@ -15,6 +17,7 @@ import argparse
 import json
 import sys
 from collections import Counter, defaultdict
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -25,7 +28,8 @@ from argen.h5 import LabelFile
 from detector.checkpoint import load_checkpoint
 from detector.errors import DetectorError
 from detector.evaluation.metrics import pose_error
-from detector.geometry.types import Detection
+from detector.geometry.icp import icp_points, icp_refine, icp_starts
+from detector.geometry.types import Detection, GeometryConfig, ObjectInfo
 from detector.geometry.voting import detect
 from detector.infer import checkpoint_geometry_config, checkpoint_objects, checkpoint_poser, estimate, split_sets
 from detector.stage1.predictor import network_predictor
@@ -33,6 +37,10 @@ from detector.stage1.predictor import network_predictor
 #: The causes, in the order a miss is tested for them.
 CAUSES = ("no stage-1 centre", "another object's centre only", "no stage-2 pose", "wrong pose",
           "right pose, score under min_score", "right pose, not chosen")
+#: Of the wrong poses, those that ICP from another of its starts would have made right (a column after them).
+START_RIGHT = "of them, an ICP start right"
+#: The table's columns.
+COLUMNS = CAUSES[:4] + (START_RIGHT,) + CAUSES[4:]
 
 
 def miss_cause(obj_id: int, centre: np.ndarray, diameter: float, stage1: list[Detection], posed: list[Detection],
@@ -57,6 +65,26 @@ def miss_cause(obj_id: int, centre: np.ndarray, diameter: float, stage1: list[De
     if error(best) >= threshold * diameter:
         return CAUSES[3]
     return CAUSES[4] if best.score < min_score else CAUSES[5]
+
+
+def icp_start_errors(detection: Detection, cloud: np.ndarray, objects: ObjectInfo, cfg: GeometryConfig, error
+                     ) -> list[float]:
+    """The pose error (metres, ``error`` of a detection) of ICP's result from each of an unrefined two-stage
+    detection's starts (:func:`detector.geometry.icp.icp_starts`), on the points ICP takes of its own points
+    (``detection.points``, rows of ``cloud`` (M,3) camera metres); as :func:`detector.geometry.icp.refine` runs them,
+    before it chooses among the results by their fit. Empty when the detection has too few points for ICP."""
+    if detection.points is None or len(detection.points) < cfg.icp_min_points:
+        return []
+    oid = detection.obj_id
+    pts = icp_points(np.asarray(cloud)[detection.points], cfg)
+    dia = objects.diameters[oid]
+    kernel = cfg.icp_kernel * dia if cfg.icp_kernel else None
+    out = []
+    for R0, t0 in icp_starts(oid, detection.R, detection.t, objects, cfg, detection.alternatives):
+        R, t = icp_refine(pts, objects.model_points[oid], R0, t0, cfg.icp_distance * dia, cfg.icp_iterations,
+                          objects.cloud(oid), kernel)
+        out.append(float(error(replace(detection, R=R, t=t))))
+    return out
 
 
 def missed_instances(report: dict, threshold: float) -> dict[int, list[tuple[int, int]]]:
@@ -111,7 +139,7 @@ def main() -> None:
             fr = lf.frame(i)
             p = pred(fr)
             stage1 = detect(p.xyz, p.obj_ids, p.confidence, p.control_points, objects, cfg, {})
-            _, posed = estimate(p, objects, loose, {}, fr.features[:, :3], poser, fr.features)
+            unrefined, posed = estimate(p, objects, loose, {}, fr.features[:, :3], poser, fr.features)
             inst = fr.instances
             for oid, k in missed[i]:
                 ours = np.flatnonzero((inst.obj_id == oid) & (np.asarray(inst.visib_fract) >= a.min_visib))
@@ -125,19 +153,26 @@ def main() -> None:
                 cause = miss_cause(oid, inst.control_points[g][8], dia, stage1, posed, err, cfg.min_score,
                                    a.threshold)
                 per[oid][cause] += 1
-                rows.append({"frame": i, "obj_id": oid, "visib_fract": round(float(inst.visib_fract[g]), 3),
-                             "cause": cause})
+                row = {"frame": i, "obj_id": oid, "visib_fract": round(float(inst.visib_fract[g]), 3), "cause": cause}
+                if cause == "wrong pose":  # the unrefined pose ICP started from: the best-scoring one near it
+                    near = [d for d in unrefined if d.obj_id == oid and
+                            np.linalg.norm(d.control_points[8] - inst.control_points[g][8]) < 0.5 * dia]
+                    errors = icp_start_errors(max(near, key=lambda d: d.score), fr.features[:, :3], objects, cfg,
+                                              err) if near else []
+                    row["icp_start_right"] = bool(errors) and min(errors) < a.threshold * dia
+                    per[oid][START_RIGHT] += row["icp_start_right"]
+                rows.append(row)
     names = {int(o["obj_id"]): o["name"] for o in report.get("objects", [])}
     print(f"{len(rows)} missed instances of {len(report['instances'])} ({a.report}), by where they were lost:")
-    print("| object | missed | " + " | ".join(CAUSES) + " |")
-    print("|---|---:|" + "---:|" * len(CAUSES))
+    print("| object | missed | " + " | ".join(COLUMNS) + " |")
+    print("|---|---:|" + "---:|" * len(COLUMNS))
     for oid in sorted(per):
-        print(f"| {names.get(oid, oid)} | {sum(per[oid].values())} | " + " | ".join(str(per[oid][c]) for c in CAUSES)
-              + " |")
+        print(f"| {names.get(oid, oid)} | {sum(per[oid][c] for c in CAUSES)} | "
+              + " | ".join(str(per[oid][c]) for c in COLUMNS) + " |")
     total = Counter()
     for c in per.values():
         total.update(c)
-    print(f"| all | {len(rows)} | " + " | ".join(str(total[c]) for c in CAUSES) + " |")
+    print(f"| all | {len(rows)} | " + " | ".join(str(total[c]) for c in COLUMNS) + " |")
     if a.json:
         a.json.write_text(json.dumps(rows, indent=1))
 

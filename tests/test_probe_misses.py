@@ -5,6 +5,7 @@ order; bad input is a one-line error."""
 from __future__ import annotations
 
 import json
+from dataclasses import replace
 import subprocess
 import sys
 from pathlib import Path
@@ -56,6 +57,36 @@ def test_miss_cause_takes_the_first_cause_that_holds(repo_script):
     assert cause([right], [_det(3, turned.R, t, 0.95, corners), weak]) == "wrong pose"
     assert cause([right], [_det(3, turned.R, t, 0.3, corners), right]) == "right pose, not chosen"
     assert set(p.CAUSES) >= {cause([], []), cause([right], [])}
+
+
+def test_icp_start_errors_tell_a_right_start_from_the_wrong_pose(repo_script):
+    """A detection turned far from the truth whose other verified hypothesis lies near it: ICP from that start
+    reaches the true pose, from the detection's own pose it does not; too few points for ICP give no errors."""
+    from argen.models.objects import builtin_objects
+    from test_geometry import visible_surface
+
+    from detector.geometry.icp import icp_starts
+    from detector.geometry.types import GeometryConfig, ObjectInfo
+
+    p = repo_script("bench/probe_misses.py")
+    rng = np.random.default_rng(3)
+    obj = builtin_objects(["drill"])[0]
+    model = np.asarray(obj.mesh.sample(1500, seed=4))
+    objects = ObjectInfo({5: obj.control_points}, {5: obj.diameter}, {5: model})
+    R, t = Rotation.from_euler("xyz", [30, -20, 60], degrees=True).as_matrix(), np.array([0.02, -0.03, 0.75])
+    cloud = visible_surface(obj, R, t, 3000, rng)
+    error = lambda d: add(model, R, t, d.R, d.t)  # noqa: E731
+    wrong = Rotation.from_euler("y", 100, degrees=True).as_matrix() @ R
+    near = (Rotation.from_rotvec([0.04, -0.03, 0.02]).as_matrix() @ R, t + np.array([0.004, -0.003, 0.002]))
+    d = Detection(obj_id=5, score=0.5, R=wrong, t=t + 0.01, support=5, control_points=obj.control_points @ wrong.T + t,
+                  members=np.arange(5), points=np.arange(len(cloud)), alternatives=[near])
+    cfg = GeometryConfig(icp=True, icp_half_turns=False)
+    errors = p.icp_start_errors(d, cloud, objects, cfg, error)
+    assert len(errors) == len(icp_starts(5, d.R, d.t, objects, cfg, d.alternatives)) == 2
+    assert errors[0] > 0.1 * obj.diameter  # ICP from the wrong pose stays wrong
+    assert errors[1] < 0.02 * obj.diameter < error(replace(d, R=near[0], t=near[1]))  # and from the near one is right
+    few = replace(d, points=np.arange(cfg.icp_min_points - 1))
+    assert p.icp_start_errors(few, cloud, objects, cfg, error) == []
 
 
 def test_missed_instances_follow_the_label_files_order_per_object(repo_script):
