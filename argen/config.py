@@ -84,6 +84,9 @@ class ClutterConfig:
     monitor: float = 0.5  # probability of a monitor on the desk behind the board
     shelf: float = 0.3  # probability of a shelf on a wall, with things on it
     shelf_items: IntRange = (1, 4)
+    # no distractor of a target's box size (argen.sim.distractors.lookalike) is placed; false places them, e.g. for
+    # free-form targets that no mug, cup, fruit or box of their size could pass for (RESULTS.md, lm8)
+    avoid_lookalikes: bool = True
 
 
 @dataclass

@@ -169,6 +169,31 @@ def test_no_distractor_is_a_lookalike_of_a_target(scenes):
     assert not distractors.lookalike(targets[0] * [1.0, 1.0, 0.3], targets[:1])
 
 
+def test_a_template_may_place_lookalikes():
+    """``clutter.avoid_lookalikes: false`` places distractors of a target's size (never labelled: background), the
+    same scenes with the default place none."""
+    cfg = load_template("linemod")
+    board = Board.from_config(cfg.board)
+    objs = builtin_objects()
+    targets = np.array([o.mesh.extents for o in objs])
+    free = dataclasses.replace(cfg, clutter=dataclasses.replace(cfg.clutter, avoid_lookalikes=False))
+
+    def lookalikes(c) -> int:
+        n = 0
+        for seed in SEEDS:
+            s = build_scene(c, objs, board, np.random.default_rng(seed))
+            for d in s.info["distractors"]:
+                it = s.background[d["item"]]
+                assert it.seg_id == 0
+                if d["kind"] != "papers" and it.key[0] == "distractor":
+                    n += distractors.lookalike(it.mesh.extents * np.cbrt(np.linalg.det(it.T_world_obj[:3, :3])),
+                                               targets)
+        return n
+
+    assert lookalikes(cfg) == 0
+    assert lookalikes(free) > 0
+
+
 def test_caches_never_serve_a_freed_objects_geometry():
     """Boards and meshes made one after another, each freed before the next (so Python may reuse an address):
     every board's mesh has its own side and every hull footprint is its own mesh's. Caches keyed by id() failed

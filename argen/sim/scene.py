@@ -168,7 +168,8 @@ def build_scene(cfg: TemplateConfig, objects: list[ObjectModel], board: Board, r
     placements, failed = place_instances(instances, cfg.placement, board.free_half_extent, rng)
     targets = [p.footprint for p in placements]
     lib = distractors_mod.library()
-    avoid = np.array([o.mesh.extents for o in objects]).reshape(-1, 3)  # no look-alikes of any target object
+    # no look-alikes of any target object, unless the template places them
+    avoid = np.array([o.mesh.extents for o in objects]).reshape(-1, 3) if cl.avoid_lookalikes else None
     f = board.free_half_extent
     n_on = int(rng.integers(cl.on_board[0], cl.on_board[1] + 1))
     for i, T, _ in distractors_mod.place_on(lambda r: r.uniform(-f, f, 2), _within(_rect(-f, f, -f, f)), 0.0, lib,
