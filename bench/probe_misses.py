@@ -154,7 +154,8 @@ def main() -> None:
                                    a.threshold)
                 per[oid][cause] += 1
                 row = {"frame": i, "obj_id": oid, "visib_fract": round(float(inst.visib_fract[g]), 3), "cause": cause}
-                if cause == "wrong pose":  # the unrefined pose ICP started from: the best-scoring one near it
+                if cause == "wrong pose":  # the best-scoring unrefined pose near it (after the colour and part
+                    # checks, which turn some objects' unrefined poses once ICP has started from them as they were)
                     near = [d for d in unrefined if d.obj_id == oid and
                             np.linalg.norm(d.control_points[8] - inst.control_points[g][8]) < 0.5 * dia]
                     errors = icp_start_errors(max(near, key=lambda d: d.score), fr.features[:, :3], objects, cfg,
