@@ -72,6 +72,8 @@ def network_predictor(checkpoint, seed: int = 0, device: str | None = None) -> P
     model = checkpoint.model
     dev = torch.device(device) if device else next(model.parameters()).device
     model.to(dev).eval()
+    # the checkpoint's SamplingConfig values (detector.checkpoint, a later layer: read as a dict); a model object
+    # without them samples as it trained, once
     sampling = getattr(checkpoint, "sampling", None) or {}
     passes, tree_fps = int(sampling.get("passes", 1)), sampling.get("fps", "trained") == "tree"
     seeds = [seed] + [[seed, k] for k in range(1, passes)]
