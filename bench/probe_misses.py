@@ -28,7 +28,7 @@ from argen.h5 import LabelFile
 from detector.checkpoint import load_checkpoint
 from detector.errors import DetectorError
 from detector.evaluation.metrics import pose_error
-from detector.geometry.icp import icp_points, icp_refine, icp_starts
+from detector.geometry.icp import icp_from_start, icp_points, icp_starts
 from detector.geometry.types import Detection, GeometryConfig, ObjectInfo
 from detector.geometry.voting import detect
 from detector.infer import checkpoint_geometry_config, checkpoint_objects, checkpoint_poser, estimate, split_sets
@@ -77,12 +77,9 @@ def icp_start_errors(detection: Detection, cloud: np.ndarray, objects: ObjectInf
         return []
     oid = detection.obj_id
     pts = icp_points(np.asarray(cloud)[detection.points], cfg)
-    dia = objects.diameters[oid]
-    kernel = cfg.icp_kernel * dia if cfg.icp_kernel else None
     out = []
     for R0, t0 in icp_starts(oid, detection.R, detection.t, objects, cfg, detection.alternatives):
-        R, t = icp_refine(pts, objects.model_points[oid], R0, t0, cfg.icp_distance * dia, cfg.icp_iterations,
-                          objects.cloud(oid), kernel)
+        R, t = icp_from_start(pts, oid, R0, t0, objects, cfg)
         out.append(float(error(replace(detection, R=R, t=t))))
     return out
 

@@ -152,16 +152,21 @@ def test_scene_is_a_pure_function_of_the_seed():
     assert all(np.array_equal(x.T_world_obj, y.T_world_obj) for x, y in zip(a.background, b.background))
 
 
+def _library_distractors(scene):
+    """(distractor info, box extents (3,) metres as placed) of each distractor drawn from the library (papers and the
+    large kinds left out)."""
+    for d in scene.info["distractors"]:
+        it = scene.background[d["item"]]
+        if d["kind"] != "papers" and it.key[0] == "distractor":
+            yield d, it.mesh.extents * np.cbrt(np.linalg.det(it.T_world_obj[:3, :3]))
+
+
 def test_no_distractor_is_a_lookalike_of_a_target(scenes):
     """Labels never contradict: nothing labelled background has a target's size and build."""
     _, _, built = scenes
     targets = np.array([o.mesh.extents for o in builtin_objects()])
     for s in built:
-        for d in s.info["distractors"]:
-            it = s.background[d["item"]]
-            if d["kind"] == "papers" or it.key[0] != "distractor":
-                continue
-            ext = it.mesh.extents * np.cbrt(np.linalg.det(it.T_world_obj[:3, :3]))
+        for d, ext in _library_distractors(s):
             assert not distractors.lookalike(ext, targets), d
     # the rule itself: a 10 % larger copy of a target is a look-alike, a 40 % larger one or a flat one is not
     assert distractors.lookalike(targets[0] * 1.1, targets)
@@ -182,12 +187,8 @@ def test_a_template_may_place_lookalikes():
         n = 0
         for seed in SEEDS:
             s = build_scene(c, objs, board, np.random.default_rng(seed))
-            for d in s.info["distractors"]:
-                it = s.background[d["item"]]
-                assert it.seg_id == 0
-                if d["kind"] != "papers" and it.key[0] == "distractor":
-                    n += distractors.lookalike(it.mesh.extents * np.cbrt(np.linalg.det(it.T_world_obj[:3, :3])),
-                                               targets)
+            assert all(s.background[d["item"]].seg_id == 0 for d in s.info["distractors"])
+            n += sum(distractors.lookalike(ext, targets) for _, ext in _library_distractors(s))
         return n
 
     assert lookalikes(cfg) == 0

@@ -164,6 +164,17 @@ def icp_starts(obj_id: int, R: np.ndarray, t: np.ndarray, objects: ObjectInfo, c
     return distinct_poses(starts, objects.diameters[obj_id])
 
 
+def icp_from_start(scene_points: np.ndarray, obj_id: int, R: np.ndarray, t: np.ndarray, objects: ObjectInfo,
+                   cfg: GeometryConfig, model_cloud=None) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`icp_refine` of one detection's scene points (S,3) camera metres from one start (R (3,3), t (3,)) with
+    ``cfg``'s correspondence distance, iterations and kernel for ``obj_id``'s diameter: what :func:`refine_poses` runs
+    for each start. model_cloud: ``objects.cloud(obj_id)`` built before (None: built here). Returns R (3,3), t (3,)."""
+    dia = objects.diameters[obj_id]
+    kernel = cfg.icp_kernel * dia if cfg.icp_kernel else None
+    return icp_refine(scene_points, objects.model_points[obj_id], R, t, cfg.icp_distance * dia, cfg.icp_iterations,
+                      model_cloud if model_cloud is not None else objects.cloud(obj_id), kernel)
+
+
 def chosen_result(fits: list[float], consistency: np.ndarray | None, margin: float | None, own: float = 0.0) -> int:
     """Which of a detection's ICP results is its candidate: fits (K,) their trimmed RMS (metres), the first from the
     detection's own pose (:func:`icp_starts`); consistency: (K,) their depth consistency in [0, 1]
@@ -201,11 +212,7 @@ def refine_poses(jobs: list, objects: ObjectInfo, cfg: GeometryConfig, consisten
 
     def run(item):
         j, (R0, t0) = item
-        pts, oid = jobs[j][0], jobs[j][1]
-        dia = objects.diameters[oid]
-        kernel = cfg.icp_kernel * dia if cfg.icp_kernel else None
-        return icp_refine(pts, objects.model_points[oid], R0, t0, cfg.icp_distance * dia, cfg.icp_iterations,
-                          clouds[oid], kernel)
+        return icp_from_start(jobs[j][0], jobs[j][1], R0, t0, objects, cfg, clouds[jobs[j][1]])
 
     done = map_threads(run, flat)
     out = []
