@@ -26,11 +26,12 @@ from pathlib import Path
 import torch
 import yaml
 
-from detector.checkpoint import SamplingConfig, save_two_stage
+from detector.checkpoint import save_two_stage
 from detector.config import config_to_dict, load_preset, load_yaml
 from detector.errors import DetectorError
 from detector.data.frames import FrameSource
 from detector.geometry.types import GeometryConfig
+from detector.stage1.sampling import SamplingConfig
 from detector.stage1.train import RESUME_FREE_KEYS, make_config, saved_run_settings, train
 from detector.stage2.poser import PoserConfig
 from detector.stage2.train import STAGE2_RESUME_FREE_KEYS, load_stage2_config, saved_settings, train_stage2
@@ -49,7 +50,7 @@ OLD_STAGE_DIRS = ("detect", "pose")
 #: The defaults of each section (``detector/presets/two-stage.yaml``): stage 1's overrides of the cpu training
 #: preset (centre votes only), stage 2's of Stage2TrainConfig, and the inference settings stored in the model file:
 #: geometry (keys of detector.geometry.types.GeometryConfig), infer (stage 2's, detector.stage2.poser.PoserConfig)
-#: and sampling (stage 1's at inference, detector.checkpoint.SamplingConfig).
+#: and sampling (stage 1's at inference, detector.stage1.sampling.SamplingConfig).
 DEFAULTS: dict[str, dict] = {k: dict(v or {}) for k, v in load_preset("two-stage").items()}
 
 
@@ -83,7 +84,7 @@ class TwoStageConfig:
         return s1, s2, geometry, asdict(PoserConfig(**infer))
 
     def resolved_sampling(self) -> dict:
-        """Stage 1's sampling at inference (:class:`detector.checkpoint.SamplingConfig` values), checked."""
+        """Stage 1's sampling at inference (:class:`detector.stage1.sampling.SamplingConfig` values), checked."""
         return vars(SamplingConfig.from_dict({**DEFAULTS["sampling"], **self.sampling}))
 
 

@@ -738,7 +738,8 @@ def test_two_stage_train_resume_eval_predict(labels, tmp_path):
     result; a stage-2 run file alone is refused clearly."""
     import json
 
-    from detector.checkpoint import SamplingConfig, load_checkpoint
+    from detector.checkpoint import load_checkpoint
+    from detector.stage1.sampling import SamplingConfig
     from detector.cli.app import app as det_app
     from detector.stage1.predictor import network_predictor
     from detector.two_stage import DEFAULTS

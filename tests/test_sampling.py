@@ -1,15 +1,19 @@
-"""Stage 1's sampling at inference (detector.checkpoint.SamplingConfig): a model file's density scales the points
+"""Stage 1's sampling at inference (detector.stage1.sampling.SamplingConfig): a model file's density scales the points
 drawn from a frame and the keypoints the network predicts at; ``--set sampling.density`` overrides it."""
 
 from __future__ import annotations
 
 from pathlib import Path
+from types import SimpleNamespace
 
 import pytest
+import torch
 
-from detector.checkpoint import SamplingConfig, load_checkpoint
+from detector.checkpoint import load_checkpoint
 from detector.errors import DetectorError
 from detector.infer import split_sets
+from detector.stage1.predictor import network_predictor
+from detector.stage1.sampling import SamplingConfig
 
 CHECKPOINTS = Path(__file__).resolve().parents[1] / "checkpoints"
 
@@ -36,6 +40,17 @@ def test_density_scales_counts_to_multiples_of_64_and_one_keeps_them():
         with pytest.raises(DetectorError, match="sampling.fps must be one of trained, tree"):
             SamplingConfig(fps=bad)
 
+
+
+def test_the_predictor_checks_a_model_objects_sampling_settings():
+    """network_predictor reads the sampling settings through SamplingConfig: a model object's bad or unknown
+    setting is a one-line DetectorError when the predictor is made, not a frame later."""
+    model = SimpleNamespace(model=torch.nn.Linear(1, 1))
+    network_predictor(model)  # none stored: one pass, the training's FPS (SamplingConfig's defaults)
+    for bad, match in (({"passes": 0}, "sampling.passes"), ({"fps": "exact"}, "sampling.fps"),
+                       ({"points": 8192}, "unknown sampling option")):
+        with pytest.raises(DetectorError, match=match):
+            network_predictor(SimpleNamespace(model=torch.nn.Linear(1, 1), sampling=bad))
 
 def test_split_sets_routes_geometry_sampling_and_stage2_settings():
     assert split_sets(["geometry.tau=0.3", "sampling.density=1.5", "geometry.icp_points=[1, 2]",

@@ -17,7 +17,7 @@ indices, up to floating-point near-ties):
   cloud; the start is still a function of the cloud alone). The two paths then sample equally spread points, not
   the same ones (a model on a GPU, which computes its indices in torch, samples such a cloud differently from one on
   CPU).
-  With ``tree`` (inference's ``sampling.fps: tree``, :class:`detector.checkpoint.SamplingConfig`) the numpy path
+  With ``tree`` (inference's ``sampling.fps: tree``, :class:`detector.stage1.sampling.SamplingConfig`) the numpy path
   takes the tree-based FPS on every cloud of at least ``2 ** TREE_FPS_HEIGHT`` points, also those up to
   :data:`EXACT_FPS_MAX_POINTS` that training samples with the loop.
 * Ball query = the ``nsample`` nearest points within ``radius`` of the centre, nearest first; missing slots

@@ -13,6 +13,7 @@ import numpy as np
 import torch
 
 from detector.stage1.dataset import inference_batch
+from detector.stage1.sampling import SamplingConfig
 
 
 @dataclass
@@ -64,18 +65,17 @@ def network_predictor(checkpoint, seed: int = 0, device: str | None = None) -> P
 
     Sampling and neighbour indices as in training (``detector.stage1.dataset.inference_batch``); times "sampling" and
     "network" (synchronised on GPU). On a GPU the neighbour indices are computed by the model (inside "network").
-    With the checkpoint's ``sampling["passes"]`` P > 1 the frame is sampled P times (pass 0 with ``seed``, as a
-    single pass; pass k with the seed sequence (seed, k)), the samplings are drawn in two threads and go through the
-    network as one batch of P, and the predictions are concatenated in pass order (P x K rows). ``sampling["fps"]``
-    "tree": the tree-based FPS on every sampling level (:class:`detector.checkpoint.SamplingConfig`).
+    The checkpoint's ``sampling`` settings (:class:`detector.stage1.sampling.SamplingConfig`, checked here; a model
+    object without them samples as it trained, once): with ``passes`` P > 1 the frame is sampled P times (pass 0
+    with ``seed``, as a single pass; pass k with the seed sequence (seed, k)), the samplings are drawn in two threads
+    and go through the network as one batch of P, and the predictions are concatenated in pass order (P x K rows);
+    ``fps`` "tree": the tree-based FPS on every sampling level.
     """
     model = checkpoint.model
     dev = torch.device(device) if device else next(model.parameters()).device
     model.to(dev).eval()
-    # the checkpoint's SamplingConfig values (detector.checkpoint, a later layer: read as a dict); a model object
-    # without them samples as it trained, once
-    sampling = getattr(checkpoint, "sampling", None) or {}
-    passes, tree_fps = int(sampling.get("passes", 1)), sampling.get("fps", "trained") == "tree"
+    sampling = SamplingConfig.from_dict(getattr(checkpoint, "sampling", None))
+    passes, tree_fps = sampling.passes, sampling.fps == "tree"
     seeds = [seed] + [[seed, k] for k in range(1, passes)]
 
     def predict(frame) -> Predictions:

@@ -21,13 +21,14 @@ import numpy as np
 from argen.errors import ArgenError
 from argen.h5 import LabelFile
 from argen.models.symmetry import rotation_angle_axis
-from detector.checkpoint import FPS_CHOICES, load_checkpoint
+from detector.checkpoint import load_checkpoint
 from detector.errors import DetectorError
 from detector.geometry.icp import support_radius
 from detector.geometry.verify import depth_votes, range_image
 from detector.geometry.voting import detect
 from detector.infer import checkpoint_geometry_config, checkpoint_objects, checkpoint_poser
 from detector.stage1.predictor import network_predictor
+from detector.stage1.sampling import FPS_CHOICES
 from detector.stage2.crops import model_coordinates
 from detector.stage2.poser import crop_predictions
 
