@@ -213,4 +213,25 @@ done
 for m in "$RUN" "$r"; do
   .venv/bin/python examples/ycbv_real/mug_probe.py "$m/model.pt" "$OUT/ycbv_real.h5" 14 --fps trained
 done
+# 6g. stage 2's training length and seed (RESULTS.md, "Training length (stage 2)"): stage 2 alone trained again
+#     beside the run's stage 1 (a run folder holding the run's finished stage 1, resumed), the run's recipe with
+#     another training seed, and 8000 steps instead of 4000 with either seed; seeds 0-7 on the real frames and the
+#     simulated test capture, with the shipped model's inference (the tree-based FPS). Only with S2LENGTH=1 (about
+#     9 minutes for 4000 steps and 17 for 8000 on machine C, 43 in all)
+if [ "${S2LENGTH:-0}" = 1 ]; then
+  for variant in 4000:1 8000:0 8000:1; do
+    steps=${variant%%:*}; s2seed=${variant##*:}; name="steps_${steps}_seed_$s2seed"; r="$RUN-s2-$name"
+    train_beside stage1 "$r" "$(printf 'stage1:\n  colour: none\n  plane_keep: 0.1\nstage2:\n  crop.colour: none\n  seed: %s\n  steps: %s\n  keep_every: 2000' \
+      "$s2seed" "$steps")"
+    for seed in 0 1 2 3 4 5 6 7; do
+      [ -f "$REP/seeds_length/$name-$seed/report.json" ] || $D eval "$r/model.pt" "$OUT/ycbv_real.h5" \
+        --out "$REP/seeds_length/$name-$seed" --icp --min-visib 0 --quiet --seed $seed --set sampling.fps=tree
+    done
+    [ -f "$REP/simtest_$name/report.json" ] || $D eval "$r/model.pt" "$OUT/ycbv_simtest.h5" --out "$REP/simtest_$name" \
+      --icp --quiet --set sampling.fps=tree
+  done
+  [ -f "$REP/simtest_default/report.json" ] || $D eval "$RUN/model.pt" "$OUT/ycbv_simtest.h5" \
+    --out "$REP/simtest_default" --icp --quiet
+  .venv/bin/python examples/ycbv_real/seeds.py "$REP/seeds_length"
+fi
 cat "$T"
