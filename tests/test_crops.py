@@ -739,9 +739,9 @@ def test_two_stage_train_resume_eval_predict(labels, tmp_path):
     import json
 
     from detector.checkpoint import load_checkpoint
-    from detector.stage1.sampling import SamplingConfig
     from detector.cli.app import app as det_app
     from detector.stage1.predictor import network_predictor
+    from detector.stage1.sampling import SamplingConfig
     from detector.two_stage import DEFAULTS
 
     tau = DEFAULTS["geometry"]["tau"]  # the two-stage default, stored in the model file

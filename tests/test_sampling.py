@@ -41,16 +41,15 @@ def test_density_scales_counts_to_multiples_of_64_and_one_keeps_them():
             SamplingConfig(fps=bad)
 
 
-
 def test_the_predictor_checks_a_model_objects_sampling_settings():
     """network_predictor reads the sampling settings through SamplingConfig: a model object's bad or unknown
     setting is a one-line DetectorError when the predictor is made, not a frame later."""
-    model = SimpleNamespace(model=torch.nn.Linear(1, 1))
-    network_predictor(model)  # none stored: one pass, the training's FPS (SamplingConfig's defaults)
+    network_predictor(SimpleNamespace(model=torch.nn.Linear(1, 1)))  # none stored: one pass, the training's FPS (SamplingConfig's defaults)
     for bad, match in (({"passes": 0}, "sampling.passes"), ({"fps": "exact"}, "sampling.fps"),
                        ({"points": 8192}, "unknown sampling option")):
         with pytest.raises(DetectorError, match=match):
             network_predictor(SimpleNamespace(model=torch.nn.Linear(1, 1), sampling=bad))
+
 
 def test_split_sets_routes_geometry_sampling_and_stage2_settings():
     assert split_sets(["geometry.tau=0.3", "sampling.density=1.5", "geometry.icp_points=[1, 2]",

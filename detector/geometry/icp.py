@@ -165,14 +165,14 @@ def icp_starts(obj_id: int, R: np.ndarray, t: np.ndarray, objects: ObjectInfo, c
 
 
 def icp_from_start(scene_points: np.ndarray, obj_id: int, R: np.ndarray, t: np.ndarray, objects: ObjectInfo,
-                   cfg: GeometryConfig, model_cloud=None) -> tuple[np.ndarray, np.ndarray]:
+                   cfg: GeometryConfig) -> tuple[np.ndarray, np.ndarray]:
     """:func:`icp_refine` of one detection's scene points (S,3) camera metres from one start (R (3,3), t (3,)) with
-    ``cfg``'s correspondence distance, iterations and kernel for ``obj_id``'s diameter: what :func:`refine_poses` runs
-    for each start. model_cloud: ``objects.cloud(obj_id)`` built before (None: built here). Returns R (3,3), t (3,)."""
+    ``cfg``'s correspondence distance, iterations and kernel for ``obj_id``'s diameter, against ``objects``' cached
+    model cloud: what :func:`refine_poses` runs for each start. Returns R (3,3), t (3,)."""
     dia = objects.diameters[obj_id]
     kernel = cfg.icp_kernel * dia if cfg.icp_kernel else None
     return icp_refine(scene_points, objects.model_points[obj_id], R, t, cfg.icp_distance * dia, cfg.icp_iterations,
-                      model_cloud if model_cloud is not None else objects.cloud(obj_id), kernel)
+                      objects.cloud(obj_id), kernel)
 
 
 def chosen_result(fits: list[float], consistency: np.ndarray | None, margin: float | None, own: float = 0.0) -> int:
@@ -208,11 +208,12 @@ def refine_poses(jobs: list, objects: ObjectInfo, cfg: GeometryConfig, consisten
     for j, (_, oid, R, t, alts) in enumerate(jobs):
         flat += [(j, s) for s in icp_starts(oid, R, t, objects, cfg, alts)]
 
-    clouds = {oid: objects.cloud(oid) for _, oid, _, _, _ in jobs}  # built here, not raced for by the threads
+    for oid in {job[1] for job in jobs}:  # the model clouds built and cached here, not raced for by the threads
+        objects.cloud(oid)
 
     def run(item):
         j, (R0, t0) = item
-        return icp_from_start(jobs[j][0], jobs[j][1], R0, t0, objects, cfg, clouds[jobs[j][1]])
+        return icp_from_start(jobs[j][0], jobs[j][1], R0, t0, objects, cfg)
 
     done = map_threads(run, flat)
     out = []

@@ -71,11 +71,11 @@ def network_predictor(checkpoint, seed: int = 0, device: str | None = None) -> P
     and go through the network as one batch of P, and the predictions are concatenated in pass order (P x K rows);
     ``fps`` "tree": the tree-based FPS on every sampling level.
     """
+    sampling = SamplingConfig.from_dict(getattr(checkpoint, "sampling", None))
+    passes, tree_fps = sampling.passes, sampling.fps == "tree"
     model = checkpoint.model
     dev = torch.device(device) if device else next(model.parameters()).device
     model.to(dev).eval()
-    sampling = SamplingConfig.from_dict(getattr(checkpoint, "sampling", None))
-    passes, tree_fps = sampling.passes, sampling.fps == "tree"
     seeds = [seed] + [[seed, k] for k in range(1, passes)]
 
     def predict(frame) -> Predictions:
