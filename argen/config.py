@@ -82,6 +82,9 @@ class ClutterConfig:
     scale: Range = (0.85, 1.2)  # factor on each distractor's real size
     papers: IntRange = (0, 3)  # magazines and papers lying on the desk
     monitor: float = 0.5  # probability of a monitor on the desk behind the board
+    # keyboards with separate keys, open laptops and mice on the desk around the board (argen.sim.distractors.DESK);
+    # none by default, which keeps the captures of the shipped models' recipes as they were
+    desk_things: IntRange = (0, 0)
     shelf: float = 0.3  # probability of a shelf on a wall, with things on it
     shelf_items: IntRange = (1, 4)
     # no distractor of a target's box size (argen.sim.distractors.lookalike) is placed; false places them, e.g. for
@@ -320,7 +323,7 @@ def validate(obj: Any, where: str = "config") -> None:
         _check(obj.stable_poses >= 1, where, "placement stable_poses must be at least 1")
         _check(0 <= obj.uniform_poses <= 1, where, "placement uniform_poses must lie in [0, 1]")
     elif isinstance(obj, ClutterConfig):
-        for name in ("count", "on_board", "papers", "shelf_items"):
+        for name in ("count", "on_board", "papers", "desk_things", "shelf_items"):
             lo, hi = getattr(obj, name)
             _check(0 <= lo <= hi, where, f"clutter {name} must be 0 <= min <= max")
         _check(0 <= obj.ring[0] <= obj.ring[1], where, "clutter ring must be 0 <= min <= max")

@@ -26,6 +26,7 @@ def test_unknown_key_is_named_with_a_suggestion(tmp_path):
     ("camera:\n  distance: [1.0]\n", "list of 2"),
     ("camera:\n  distance: [1.2, 0.5]\n", "distance"),
     ("placement:\n  objects_per_frame: [0, 2]\n", "objects_per_frame"),
+    ("clutter:\n  desk_things: [2, 1]\n", "clutter desk_things must be 0 <= min <= max"),
     ("noise:\n  enabled: maybe\n", "true or false"),
     ("camera: 3\n", "expected a mapping"),
     ("camera: [\n", "not valid YAML"),

@@ -25,9 +25,12 @@ from argen.sim.scene import build_scene
 SEEDS = range(8)
 
 
-@pytest.fixture(scope="module")
-def scenes():
+@pytest.fixture(scope="module", params=["default", "desk_things"])
+def scenes(request):
+    """The linemod template's scenes, as they are and with computer things on the desk (``clutter.desk_things``)."""
     cfg = load_template("linemod")
+    if request.param == "desk_things":
+        cfg = dataclasses.replace(cfg, clutter=dataclasses.replace(cfg.clutter, desk_things=(1, 3)))
     board = Board.from_config(cfg.board)
     objs = builtin_objects()
     return cfg, board, [build_scene(cfg, objs, board, np.random.default_rng(s)) for s in SEEDS]
@@ -59,6 +62,49 @@ def test_every_shape_kind_is_a_real_sized_solid_standing_on_z0():
         assert np.allclose((lo[:2] + hi[:2]) / 2, 0, atol=1e-9), kind
         assert 0.02 < (hi - lo).max() < 0.6, (kind, hi - lo)  # household sizes, metres
         assert mesh.visual.kind == "vertex" and len(mesh.visual.vertex_colors) == len(mesh.vertices), kind
+
+
+def test_computer_things_are_real_sized_solids_standing_on_z0():
+    lib = distractors.desk_library(variants=2)
+    assert {k for k, _ in lib} == set(distractors.DESK)
+    for kind, mesh in lib:
+        lo, hi = mesh.bounds
+        assert abs(lo[2]) < 1e-9 and np.allclose((lo[:2] + hi[:2]) / 2, 0, atol=1e-9), kind
+        assert 0.05 < (hi - lo).max() < 0.5 and (hi - lo)[2] < 0.3, (kind, hi - lo)
+
+
+def test_a_keyboard_has_separate_keys_standing_proud_of_its_case():
+    """Each key cap is its own solid (the coarse bar keyboard has one bar a row): 60-110 caps, a space bar, and the
+    caps' tops 6-10 mm above the case."""
+    rng = np.random.default_rng(3)
+    for _ in range(6):
+        parts = distractors.keyboard(rng).split(only_watertight=False)
+        case = max(parts, key=lambda p: p.area)
+        caps = [p for p in parts if p is not case]
+        assert 60 <= len(caps) <= 110
+        widths = sorted(p.extents[0] for p in caps)
+        assert widths[-1] > 4 * widths[len(widths) // 2]  # the space bar
+        proud = np.array([p.bounds[1, 2] for p in caps]) - case.bounds[1, 2]
+        assert np.all((proud > 0.0059) & (proud < 0.0101))
+    assert len(distractors.bar_keyboard(rng).split(only_watertight=False)) == 6
+
+
+def test_computer_things_lie_beside_the_board_only_when_asked_for(scenes):
+    cfg, board, built = scenes
+    kinds = [d["kind"] for s in built for d in s.info["distractors"] if d["surface"] == "desk"]
+    things = [k for k in kinds if k in distractors.DESK]
+    if cfg.clutter.desk_things == (0, 0):
+        assert not things
+        return
+    assert len(things) >= len(built) and {"keyboard", "laptop"} <= set(things)
+    # most of them right beside the board (within 5 cm of its edge), where the camera sees them
+    from argen.sim.placement import separation
+
+    half = board.side / 2
+    square = np.array([[-half, -half], [half, -half], [half, half], [-half, half]])
+    gaps = [separation(distractors.hull_footprint(s.background[d["item"]].mesh, s.background[d["item"]].T_world_obj),
+                       square) for s in built for d in s.info["distractors"] if d["kind"] in distractors.DESK]
+    assert np.mean(np.array(gaps) < 0.05) > 0.5
 
 
 def test_scenes_have_distractors_on_the_board_and_the_desk(scenes):

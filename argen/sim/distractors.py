@@ -1,7 +1,7 @@
 """Distractor objects: procedural household things of realistic shape and size, and their placement.
 
 Real scenes are full of things that are not the targets: mugs, cups, bowls, bottles, cans, boxes, books,
-tools, toys, cables, fruit, a keyboard. A detector trained among plain boxes and cylinders calls such things
+tools, toys, cables, fruit, keyboards, laptops. A detector trained among plain boxes and cylinders calls such things
 targets, so capture-sim scatters these instead. Every shape is generated here from trimesh primitives
 (revolved profiles, swept tubes, boxes), at its real size in metres, standing on z = 0 in a stable resting
 pose with its footprint centred on the origin. Shapes are generated, not taken from a mesh package, because
@@ -230,11 +230,82 @@ def tube(path: np.ndarray, radius: float, sides: int = 8) -> trimesh.Trimesh:
     return m
 
 
-def keyboard(rng: np.random.Generator) -> trimesh.Trimesh:
+def bar_keyboard(rng: np.random.Generator) -> trimesh.Trimesh:
+    """A keyboard drawn coarsely: a slab with five bars for its key rows (no separate keys; see :func:`keyboard`)."""
     L, W = rng.uniform(0.35, 0.45), rng.uniform(0.12, 0.16)
     base = paint(_box((L, W, 0.018), (0, 0, 0.009)), rng)
     keys = [_box((L * 0.92, W * 0.14, 0.008), (0, (k - 2) * W * 0.18, 0.022)) for k in range(5)]
     return trimesh.util.concatenate([base, paint(trimesh.util.concatenate(keys), rng)])
+
+
+def _key_grid(width: float, depth: float, rows: int, pitch: float, cap: float, z: float, top: float,
+              space: bool = True) -> list[trimesh.Trimesh]:
+    """Key caps in ``rows`` rows of ``pitch`` metres filling ``width`` x ``depth`` (centred on the origin), each a
+    box ``cap`` x ``cap`` x ``top`` metres standing on height ``z``; with ``space``, the row nearest the user (-y)
+    has a space bar."""
+    caps = []
+    cols = max(int(width // pitch), 1)
+    x0 = -(cols - 1) * pitch / 2
+    for r in range(rows):
+        y = -depth / 2 + pitch / 2 + r * pitch
+        if r == 0 and space and cols > 6:  # modifiers, a space bar of six keys' width, modifiers
+            side = (cols - 6) // 2
+            xs = [x0 + c * pitch for c in range(side)] + [x0 + c * pitch for c in range(side + 6, cols)]
+            caps.append(_box((6 * pitch - (pitch - cap), cap, top), (x0 + (side + 2.5) * pitch, y, z + top / 2)))
+        else:
+            xs = [x0 + c * pitch for c in range(cols)]
+        caps += [_box((cap, cap, top), (x, y, z + top / 2)) for x in xs]
+    return caps
+
+
+def keyboard(rng: np.random.Generator) -> trimesh.Trimesh:
+    """A computer keyboard: a low case with separate key caps on a 19 mm pitch (5-6 rows, a space bar), standing
+    6-10 mm proud of it, and on wide ones a number pad beside the main block. Real keyboards lie beside
+    the objects on most desks; their rows of small bumps look to a depth network like the bumps of small objects."""
+    rows = int(rng.integers(5, 7))
+    pitch = rng.uniform(0.018, 0.0195)
+    main = rng.uniform(14.5, 15.5) * pitch
+    pad = 4 * pitch + 0.02 if rng.random() < 0.5 else 0.0
+    L, W = main + pad + rng.uniform(0.015, 0.04), rows * pitch + rng.uniform(0.015, 0.05)
+    h = rng.uniform(0.012, 0.022)
+    base = paint(_box((L, W, h), (0, 0, h / 2)), rng)
+    cap, top = pitch * rng.uniform(0.75, 0.88), rng.uniform(0.006, 0.01)
+    caps = _key_grid(main, rows * pitch, rows, pitch, cap, h, top)
+    for c in caps:
+        c.apply_translation([-pad / 2, 0, 0])
+    if pad:
+        numpad = _key_grid(4 * pitch, rows * pitch, rows, pitch, cap, h, top, space=False)
+        for c in numpad:
+            c.apply_translation([main / 2 + 0.02 + 2 * pitch - pad / 2, 0, 0])
+        caps += numpad
+    return trimesh.util.concatenate([base, paint(trimesh.util.concatenate(caps), rng)])
+
+
+def laptop(rng: np.random.Generator) -> trimesh.Trimesh:
+    """An open laptop: a flat base with low key caps and a touch pad, its lid hinged at the back edge (+y) and
+    opened 95-130 degrees."""
+    W, D, h = rng.uniform(0.3, 0.38), rng.uniform(0.21, 0.26), rng.uniform(0.014, 0.022)
+    base = paint(_box((W, D, h), (0, 0, h / 2)), rng)
+    pitch = W * 0.88 / 15
+    caps = _key_grid(W * 0.88, 5 * pitch, 5, pitch, pitch * 0.82, h, 0.0015)
+    for c in caps:
+        c.apply_translation([0, D / 2 - 5 * pitch / 2 - 0.02, 0])
+    pad = _box((W * 0.3, D * 0.25, 0.001), (0, -D / 2 + D * 0.16, h + 0.0005))
+    t = rng.uniform(0.005, 0.009)
+    lid = _box((W, t, D), (0, 0, D / 2))
+    lid.apply_transform(trimesh.transformations.rotation_matrix(-rng.uniform(0.09, 0.7), [1, 0, 0]))
+    lid.apply_translation([0, D / 2 - t / 2, h])
+    return trimesh.util.concatenate([base, paint(trimesh.util.concatenate([*caps, pad]), rng), paint(lid, rng)])
+
+
+def mouse(rng: np.random.Generator) -> trimesh.Trimesh:
+    """A computer mouse: a half ellipsoid, 10-12 cm long, 6-6.5 cm wide and 3-4 cm high."""
+    m = trimesh.creation.icosphere(subdivisions=2, radius=1.0)
+    v = m.vertices.copy()
+    v[:, 2] = np.maximum(v[:, 2], 0.0)
+    m = trimesh.Trimesh(v * [rng.uniform(0.03, 0.0325), rng.uniform(0.05, 0.06), rng.uniform(0.03, 0.04)],
+                        m.faces, process=False)
+    return paint(m, rng)
 
 
 def monitor(rng: np.random.Generator) -> trimesh.Trimesh:
@@ -249,10 +320,12 @@ def monitor(rng: np.random.Generator) -> trimesh.Trimesh:
 
 #: Builders of small things, by kind; each draws its proportions and colours from the generator.
 SMALL: dict[str, Callable] = {f.__name__: f for f in (
-    mug, cup, bowl, bottle, can, box, books, screwdriver, hammer, toy_car, blocks, fruit, cable, keyboard,
+    mug, cup, bowl, bottle, can, box, books, screwdriver, hammer, toy_car, blocks, fruit, cable, bar_keyboard,
     lying(bottle), lying(can))}
 #: Large things that stand on the desk behind the board.
 LARGE: dict[str, Callable] = {"monitor": monitor}
+#: Computer things that lie on the desk beside the board (``clutter.desk_things``).
+DESK: dict[str, Callable] = {f.__name__: f for f in (keyboard, laptop, mouse)}
 
 _cache: dict = {}
 
@@ -264,25 +337,32 @@ def centred(mesh: trimesh.Trimesh) -> trimesh.Trimesh:
     return mesh
 
 
+def _made(builders: dict[str, Callable], variants: int, seed: int) -> list[tuple[str, trimesh.Trimesh]]:
+    """``variants`` meshes of every kind in ``builders`` from one generator of ``seed``, as (kind, mesh) pairs,
+    standing on z = 0 with their footprints centred; made once per process."""
+    key = (tuple(builders), variants, seed)
+    if key not in _cache:
+        rng = np.random.default_rng(seed)
+        _cache[key] = [(kind, centred(fn(rng))) for kind, fn in builders.items() for _ in range(variants)]
+    return _cache[key]
+
+
 def library(variants: int = 4, seed: int = 2024) -> list[tuple[str, trimesh.Trimesh]]:
     """The process's fixed distractor set: ``variants`` meshes of every small kind, as (kind, mesh) pairs.
 
     Meshes are in metres at their real size, standing on z = 0, footprint centred. Made once per process.
     """
-    key = ("library", variants, seed)
-    if key not in _cache:
-        rng = np.random.default_rng(seed)
-        _cache[key] = [(kind, centred(fn(rng))) for kind, fn in SMALL.items() for _ in range(variants)]
-    return _cache[key]
+    return _made(SMALL, variants, seed)
 
 
 def large_library(variants: int = 3, seed: int = 2025) -> list[tuple[str, trimesh.Trimesh]]:
     """Like :func:`library`, for the large kinds (monitors)."""
-    key = ("large", variants, seed)
-    if key not in _cache:
-        rng = np.random.default_rng(seed)
-        _cache[key] = [(kind, centred(fn(rng))) for kind, fn in LARGE.items() for _ in range(variants)]
-    return _cache[key]
+    return _made(LARGE, variants, seed)
+
+
+def desk_library(variants: int = 4, seed: int = 2026) -> list[tuple[str, trimesh.Trimesh]]:
+    """Like :func:`library`, for the computer things (keyboards with separate keys, laptops, mice)."""
+    return _made(DESK, variants, seed)
 
 
 def hull_footprint(mesh: trimesh.Trimesh, T: np.ndarray) -> np.ndarray:

@@ -176,7 +176,7 @@ def build_scene(cfg: TemplateConfig, objects: list[ObjectModel], board: Board, r
                                             n_on, list(targets), rng, cl.scale, near=targets, near_prob=cl.near_target,
                                             avoid=avoid):
         add(lib[i][0], ("distractor", i), lib[i][1], T, "board")
-    # the desk around the board: papers first (flat), a monitor, then the small things
+    # the desk around the board: papers first (flat), a monitor, computer things, then the small things
     desk_in = _within(room["desk"])
 
     def on_desk(fp: np.ndarray) -> bool:
@@ -211,6 +211,13 @@ def build_scene(cfg: TemplateConfig, objects: list[ObjectModel], board: Board, r
                 add(big[i][0], ("large", i), big[i][1], T2, "desk")
             else:
                 taken.pop()
+    if cl.desk_things[1] > 0:  # drawn only when asked for, so that captures without them stay as they were
+        things = distractors_mod.desk_library()
+        n = int(rng.integers(cl.desk_things[0], cl.desk_things[1] + 1))
+        # mostly right beside the board, as a keyboard lies beside the things on a desk (and in view of the camera)
+        for i, T, _ in distractors_mod.place_on(ring, on_desk, dz, things, n, taken, rng, (0.95, 1.05),
+                                                near=[board_square], near_prob=0.8, avoid=avoid):
+            add(things[i][0], ("desk_thing", i), things[i][1], T, "desk")
     n_desk = int(rng.integers(cl.count[0], cl.count[1] + 1))
     for i, T, _ in distractors_mod.place_on(ring, on_desk, dz, lib, n_desk, taken, rng, cl.scale, avoid=avoid):
         add(lib[i][0], ("distractor", i), lib[i][1], T, "desk")

@@ -234,4 +234,34 @@ if [ "${S2LENGTH:-0}" = 1 ]; then
     --out "$REP/simtest_default" --icp --quiet
   .venv/bin/python examples/ycbv_real/seeds.py "$REP/seeds_length"
 fi
+# 6h. computer things on the desk for stage 1 (RESULTS.md, "Keyboards with keys in stage 1's capture"): the stage-1
+#     capture again with 1-3 keyboards with separate keys, open laptops and mice beside the board
+#     (`clutter.desk_things`), still without the cup-sized distractors, and stage 1 alone trained on it beside the
+#     run's stage 2 (a run folder holding the run's finished stage 2, resumed), with two training seeds; seeds 0-7 on
+#     the real frames and the simulated test capture with the shipped model's inference, and the stage-1 probe. Only
+#     with DESK=1 (about 4 minutes of capture and labels, 15 for each stage 1)
+if [ "${DESK:-0}" = 1 ]; then
+  step capture_stage1_desk $A "${CAPTURE[@]}" --out "$OUT/ycbv_stage1_desk" --set clutter.count=[0,0] \
+    --set clutter.on_board=[0,0] --set clutter.desk_things=[1,3]
+  [ -f "$OUT/ycbv_stage1_desk.h5" ] || step label_stage1_desk $A label "$OUT/ycbv_stage1_desk" \
+    --out "$OUT/ycbv_stage1_desk.h5" --max-depth 1.5 --quiet
+  for s1seed in 0 1; do
+    r="$RUN-s1-desk_things_seed_$s1seed"
+    train_beside stage2 "$r" "$(printf 'stage1:\n  colour: none\n  plane_keep: 0.1\n  seed: %s\nstage2:\n  crop.colour: none\n  steps: %s\n  keep_every: 2000' \
+      "$s1seed" "$S2STEPS")" --stage1-data "$OUT/ycbv_stage1_desk.h5"
+    for seed in 0 1 2 3 4 5 6 7; do
+      [ -f "$REP/seeds_desk/desk_things_seed_$s1seed-$seed/report.json" ] || $D eval "$r/model.pt" \
+        "$OUT/ycbv_real.h5" --out "$REP/seeds_desk/desk_things_seed_$s1seed-$seed" --icp --min-visib 0 --quiet \
+        --seed $seed --set sampling.fps=tree
+    done
+    [ -f "$REP/simtest_desk_things_seed_$s1seed/report.json" ] || $D eval "$r/model.pt" "$OUT/ycbv_simtest.h5" \
+      --out "$REP/simtest_desk_things_seed_$s1seed" --icp --quiet --set sampling.fps=tree
+    .venv/bin/python bench/probe_stage1.py "$r/model.pt" "$OUT/ycbv_real.h5" --frames 10 --min-visib 0
+  done
+  for seed in 0 1 2 3 4 5 6 7; do
+    [ -f "$REP/seeds_desk/shipped-$seed/report.json" ] || $D eval "$RUN/model.pt" "$OUT/ycbv_real.h5" \
+      --out "$REP/seeds_desk/shipped-$seed" --icp --min-visib 0 --quiet --seed $seed --set sampling.fps=tree
+  done
+  .venv/bin/python examples/ycbv_real/seeds.py "$REP/seeds_desk"
+fi
 cat "$T"
