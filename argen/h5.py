@@ -71,7 +71,9 @@ class ObjectTable:
     texture_colours: per object (N_m,3) uint8 RGB its colours there (N_m = 0: the object has no such turns, or no
     print to tell them apart); part_symmetries: per object (P_m,4,4) float32, the turns about an axis that map all
     of its surface but an odd part (a mug's handle) onto itself, and odd_points: per object (K_m,3) float32 surface
-    samples of that part (:func:`argen.models.symmetry.find_part_symmetry`; P_m = K_m = 0: it has none).
+    samples of that part (:func:`argen.models.symmetry.find_part_symmetry`; P_m = K_m = 0: it has none);
+    surface_points and surface_normals: per object (S_m,3) float32 surface samples and their outward unit normals
+    (``argen.label.SURFACE_POINTS`` of them).
     """
 
     ids: np.ndarray
@@ -87,6 +89,8 @@ class ObjectTable:
     texture_colours: list[np.ndarray] = field(default_factory=list)
     part_symmetries: list[np.ndarray] = field(default_factory=list)
     odd_points: list[np.ndarray] = field(default_factory=list)
+    surface_points: list[np.ndarray] = field(default_factory=list)
+    surface_normals: list[np.ndarray] = field(default_factory=list)
 
     def index(self, obj_id: int) -> int:
         """Row of ``obj_id`` in the table; ArgenError when the file has no such object."""
@@ -163,14 +167,17 @@ def point_control_points(instance_cps: np.ndarray, instance: np.ndarray) -> np.n
 
 def _optional_tables(o, n: int, path) -> dict:
     """The object group's optional tables (see :class:`ObjectTable`: shape symmetries and texture samples, part
-    symmetries and odd points) as its keyword arguments; none of a group the file was written without."""
+    symmetries and odd points, surface samples and normals) as its keyword arguments; none of a group the file was
+    written without."""
     out = {}
     for key, name, offsets, dtype, shape in (
             ("shape_symmetries", "shape_sym", "shape_sym_offsets", np.float32, (4, 4)),
             ("texture_points", "texture_points", "texture_offsets", np.float32, (3,)),
             ("texture_colours", "texture_colours", "texture_offsets", np.uint8, (3,)),
             ("part_symmetries", "part_sym", "part_sym_offsets", np.float32, (4, 4)),
-            ("odd_points", "odd_points", "odd_offsets", np.float32, (3,))):
+            ("odd_points", "odd_points", "odd_offsets", np.float32, (3,)),
+            ("surface_points", "surface_points", "surface_offsets", np.float32, (3,)),
+            ("surface_normals", "surface_normals", "surface_offsets", np.float32, (3,))):
         if name not in o:
             continue
         off = o[offsets][()].astype(np.int64)
@@ -370,6 +377,11 @@ class LabelWriter:
         if o.part_symmetries:
             self._ragged("objects/part_sym", [np.asarray(s, np.float32).reshape(-1, 4, 4) for s in o.part_symmetries])
             self._ragged("objects/odd", [np.asarray(p, np.float32).reshape(-1, 3) for p in o.odd_points], "points")
+        if o.surface_points:
+            self._ragged("objects/surface", [np.asarray(p, np.float32).reshape(-1, 3) for p in o.surface_points],
+                         "points")
+            self._ragged("objects/surface", [np.asarray(n, np.float32).reshape(-1, 3) for n in o.surface_normals],
+                         "normals", offsets=False)
 
     def _ragged(self, name: str, rows: list[np.ndarray], part: str = "", offsets: bool = True,
                 empty: np.ndarray | None = None) -> None:

@@ -109,14 +109,30 @@ def sample_surface(vertices: np.ndarray, faces: np.ndarray, n: int, rng: np.rand
 
     vertices: (V,3) metres; faces: (F,3) int. Returns (n,3) float64 metres.
     """
+    return sample_surface_normals(vertices, faces, n, rng)[0]
+
+
+def sample_surface_normals(vertices: np.ndarray, faces: np.ndarray, n: int, rng: np.random.Generator
+                           ) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`sample_surface`'s points (the same ones for the same generator) and the unit normals of their faces,
+    by the faces' winding (outward for a mesh whose faces wind counter-clockwise seen from outside, as BOP's do).
+
+    vertices: (V,3) metres; faces: (F,3) int. Returns (n,3) float64 metres and (n,3) float64 unit vectors.
+    """
     tri = np.asarray(vertices, float)[np.asarray(faces)]
-    area = np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
+    cross = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    area = np.linalg.norm(cross, axis=1)
     f = rng.choice(len(tri), size=n, p=area / area.sum())
     a, b = rng.random(n), rng.random(n)
     flip = a + b > 1
     a[flip], b[flip] = 1 - a[flip], 1 - b[flip]
     t = tri[f]
-    return t[:, 0] + a[:, None] * (t[:, 1] - t[:, 0]) + b[:, None] * (t[:, 2] - t[:, 0])
+    return t[:, 0] + a[:, None] * (t[:, 1] - t[:, 0]) + b[:, None] * (t[:, 2] - t[:, 0]), cross[f] / area[f, None]
+
+
+#: Surface samples with their normals per object in the objects table (seeded (seed, obj_id, 2)): what the detector's
+#: surface-continuation check measures a pose's outline with (detector.geometry.verify.surface_continuation)
+SURFACE_POINTS = 4000
 
 
 def object_table(objects: list[ObjectModel], n_points: int = 1000, seed: int = 0) -> ObjectTable:
@@ -132,6 +148,8 @@ def object_table(objects: list[ObjectModel], n_points: int = 1000, seed: int = 0
     cps = np.stack([o.control_points for o in objects])
     from argen.models.symmetry import PART_STEPS, part_symmetry_of  # lazy: it loads open3d (about a second)
 
+    surface = [sample_surface_normals(o.mesh.vertices, o.mesh.faces, SURFACE_POINTS,
+                                      np.random.default_rng([seed, o.obj_id, 2])) for o in objects]
     shape_sym, tex_pts, tex_cols, part_sym, odd_pts = [], [], [], [], []
     for o in objects:  # the turns only a print tells apart, and the print (argen.models.texture)
         turns = shape_symmetries(o)
@@ -157,6 +175,8 @@ def object_table(objects: list[ObjectModel], n_points: int = 1000, seed: int = 0
         sym_transforms=[bop.symmetry_transforms(o.info, CONTINUOUS_STEPS).astype(np.float32) for o in objects],
         shape_symmetries=shape_sym, texture_points=tex_pts, texture_colours=tex_cols,
         part_symmetries=part_sym, odd_points=odd_pts,
+        surface_points=[p.astype(np.float32) for p, _ in surface],
+        surface_normals=[n.astype(np.float32) for _, n in surface],
     )
 
 

@@ -5,6 +5,7 @@ dataset (:mod:`detector.evaluation.bop_eval`: BOP19 Average Recall) and writes t
 
 from __future__ import annotations
 
+import sys
 import time
 from dataclasses import asdict, replace
 from pathlib import Path
@@ -85,7 +86,16 @@ def evaluate(predictor: Predictor, label_path: str | Path, out_dir: str | Path, 
             lf.attrs.get("source_dataset", "")), split)
         table = lf.objects
         source = (root, split, str(lf.attrs.get("source_argen_json") or ""))
-        objects = objects if objects is not None else ObjectInfo.from_table(table)
+        in_file = ObjectInfo.from_table(table)
+        if objects is None:
+            objects = in_file
+        else:  # a model trained before its table carried surface normals takes the label file's, of the same objects
+            objects.surfaces.update({k: v for k, v in in_file.surfaces.items()
+                                     if k in objects.diameters and k not in objects.surfaces})
+        if cfg.continuation_check and not objects.surfaces:
+            print("warning: geometry.continuation_check is on, but neither the model nor the label file carries the "
+                  "objects' surface normals (label files written before 2026-12-07): nothing is checked",
+                  file=sys.stderr)
         idx = range(lf.num_frames) if frames is None else frames
         it = idx
         if progress:

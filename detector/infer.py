@@ -14,6 +14,7 @@ import time
 from dataclasses import replace
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from argen.features import check_max_depth
 from detector.config import apply_set_options, parse_set_options
@@ -22,7 +23,7 @@ from detector.geometry.colour_check import colour_checked
 from detector.geometry.icp import refine
 from detector.geometry.part_check import part_checked
 from detector.geometry.types import Detection, GeometryConfig, ObjectInfo
-from detector.geometry.verify import depth_checked, pose_consistency, range_image
+from detector.geometry.verify import continuation_checked, depth_checked, pose_consistency, range_image
 from detector.geometry.voting import detect, nms, other_classes
 from detector.stage1.predictor import Predictions
 from detector.stage2.crops import CropConfig
@@ -57,8 +58,11 @@ def estimate(preds: Predictions, objects: ObjectInfo, cfg: GeometryConfig, timin
     (:func:`detector.geometry.part_check.part_checked`): the poses after ICP, and the unrefined ones once ICP has
     started from them as they were (from a half-turned start ICP sometimes finds the turn itself, and a check before
     it would move such poses away: RESULTS.md). With ``cfg.icp_depth_margin`` and a cloud, the frame's depth also
-    chooses among each detection's ICP results (:func:`detector.geometry.icp.chosen_result`). Adds "depth_check"
-    seconds (the range image's too).
+    chooses among each detection's ICP results (:func:`detector.geometry.icp.chosen_result`). With
+    ``cfg.continuation_check`` and a cloud, last, the score of a pose that would be kept falls where the frame's
+    surfaces run on past its model (:func:`detector.geometry.verify.continuation_checked`: a pose on part of a
+    larger thing), before and after ICP. Adds "depth_check" seconds (the range image's too) and
+    "continuation_check" seconds.
     """
     dets = detect(preds.xyz, preds.obj_ids, preds.confidence, preds.control_points, objects, cfg, timings)
     if poser is not None:
@@ -96,6 +100,14 @@ def estimate(preds: Predictions, objects: ObjectInfo, cfg: GeometryConfig, timin
         t_check += time.perf_counter() - t0
     if frame is not None and cfg.depth_check and timings is not None:
         timings["depth_check"] = timings.get("depth_check", 0.0) + t_check
+    if cfg.continuation_check and cloud is not None and (dets or refined):  # the poses that would be kept
+        t0 = time.perf_counter()
+        tree = cKDTree(np.asarray(cloud, np.float64))
+        dets = continuation_checked([d for d in dets if d.score >= lo], cloud, objects, cfg, tree)
+        if refined is not None:
+            refined = continuation_checked([d for d in refined if d.score >= cfg.min_score], cloud, objects, cfg, tree)
+        if timings is not None:
+            timings["continuation_check"] = timings.get("continuation_check", 0.0) + time.perf_counter() - t0
     return ([d for d in dets if d.score >= lo],
             [d for d in refined if d.score >= cfg.min_score] if refined is not None else None)
 

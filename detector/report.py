@@ -17,7 +17,8 @@ from detector.errors import DetectorError
 from detector.evaluation.metrics import THRESHOLDS
 
 BOP_FIELDS = ("scene_id", "im_id", "obj_id", "score", "R", "t", "time")
-STAGES = ("sampling", "network", "voting", "kabsch", "stage2", "icp", "depth_check", "colour_check", "part_check")
+STAGES = ("sampling", "network", "voting", "kabsch", "stage2", "icp", "depth_check", "colour_check", "part_check",
+          "continuation_check")
 
 
 def bop_row(scene_id: int, im_id: int, obj_id: int, score: float, R: np.ndarray, t: np.ndarray, time_s: float) -> dict:

@@ -110,8 +110,8 @@ def object_table_dict(objects) -> dict:
     """The label file's object table as plain lists (for checkpoints): ids, names, diameters, symmetric,
     control_points (M, 9, 3) metres, model_points (M, P, 3) metres, sym_transforms per object (S, 4, 4),
     shape_symmetries per object (T, 4, 4), texture_points (N, 3) metres and texture_colours (N, 3) 0-255 per
-    object, part_symmetries per object (P, 4, 4) and odd_points (K, 3) metres per object (empty lists for a label
-    file without them)."""
+    object, part_symmetries per object (P, 4, 4) and odd_points (K, 3) metres per object, surface_points (S, 3)
+    metres and surface_normals (S, 3) per object (empty lists for a label file without them)."""
     return {
         "ids": [int(i) for i in objects.ids],
         "names": [str(n) for n in objects.names],
@@ -125,4 +125,6 @@ def object_table_dict(objects) -> dict:
         "texture_colours": [np.asarray(c, dtype=np.uint8).tolist() for c in objects.texture_colours],
         "part_symmetries": [np.asarray(s, dtype=np.float32).tolist() for s in objects.part_symmetries],
         "odd_points": [np.asarray(p, dtype=np.float32).tolist() for p in objects.odd_points],
+        "surface_points": [np.asarray(p, dtype=np.float32).tolist() for p in objects.surface_points],
+        "surface_normals": [np.asarray(n, dtype=np.float32).tolist() for n in objects.surface_normals],
     }
