@@ -78,9 +78,10 @@ class GeometryConfig:
     continuation_check: lower the score of a detection whose model the frame's surfaces run on past, in the planes of
     its faces (:func:`detector.geometry.verify.continuation_checked`: a pose on part of a larger thing, a box on a
     keyboard's edge); needs the frame's cloud and the objects' surface normals (label files written since
-    2026-12-07 carry them); off by default (measured on the real ycbv frames only: RESULTS.md); continuation_limit:
+    2026-12-07 carry them); off by default (it costs lm8.pt right poses on the simulated LineMOD captures:
+    RESULTS.md); continuation_limit:
     continued frame points per explained one above which the score is scaled by limit / ratio (on the 10 ycbv_real
-    frames, 8 sampling seeds, ``ycbv3.pt``'s poses within 2 cm of their object are at most 0.029, its other poses
+    frames, 8 sampling seeds, ``ycbv3.pt``'s poses within 2 cm of their object are at most 0.032, its other poses
     at least 0.047, median 0.10); continuation_tolerance: metres, a frame point this close to the posed model is
     explained, and this close to a face's plane lies in it; continuation_reach: the frame points within this
     fraction of the diameter of the model's visible surface are looked at.
