@@ -43,7 +43,8 @@ POSE = (np.eye(3), np.array([0.0, 0.0, 0.985]))  # the box's front face at 0.97 
 def ratio(cloud: np.ndarray, objects: ObjectInfo, cfg=GeometryConfig()) -> tuple[int, int]:
     pts, normals = objects.surfaces[1]
     return surface_continuation(cloud, cKDTree(cloud), pts, normals, *POSE, cfg.continuation_tolerance,
-                                cfg.continuation_reach * objects.diameters[1], 1.5 * objects.surface_spacing(1))
+                                cfg.continuation_reach * objects.diameters[1], 1.5 * objects.surface_spacing(1),
+                                beyond=cfg.continuation_gap)
 
 
 def test_a_real_box_explains_its_face_and_nothing_runs_on_past_it():
@@ -57,6 +58,16 @@ def test_a_box_posed_on_part_of_a_larger_slab_has_the_slab_run_on_in_its_faces_p
     real, _ = ratio(depth_cloud(BOX[:2]), box_objects())
     assert explained >= 0.95 * real  # every model point is seen, as for the real box: the depth check cannot tell
     assert continued > 0.5 * explained
+
+
+def test_points_just_past_the_outline_are_not_counted_within_the_gap():
+    """A face seen 7 mm wider on every side than the model's (the sensor's noise and blur at an outline) runs on
+    within the gap only: nothing counted; without the gap it would be."""
+    wider = (BOX[0] + 0.014, BOX[1] + 0.014)
+    cfg = GeometryConfig()
+    assert cfg.continuation_gap >= 0.01
+    assert ratio(depth_cloud(wider), box_objects())[1] <= ratio(depth_cloud(BOX[:2]), box_objects())[1] + 2
+    assert ratio(depth_cloud(wider), box_objects(), replace(cfg, continuation_gap=0.0))[1] > 50
 
 
 def test_continuation_checked_lowers_only_the_pose_on_the_slab():

@@ -136,15 +136,16 @@ def depth_checked(detections: list, frame: RangeImage, objects, cfg, refined: bo
 
 def surface_continuation(cloud: np.ndarray, cloud_tree: cKDTree, model_points: np.ndarray,
                          model_normals: np.ndarray, R: np.ndarray, t: np.ndarray, tolerance: float, reach: float,
-                         explain: float | None = None, min_cos: float = 0.9, neighbours: int = 16,
-                         max_points: int | None = 2000) -> tuple[int, int]:
+                         explain: float | None = None, beyond: float = 0.0, min_cos: float = 0.9,
+                         neighbours: int = 16, max_points: int | None = 2000) -> tuple[int, int]:
     """How far the frame's surfaces run on past a pose's model: (explained, continued) frame point counts.
 
     cloud: (M,3) the frame's points, camera metres, and ``cloud_tree`` a cKDTree of them; model_points (P,3)
     model frame metres and model_normals (P,3) their outward unit normals; R (3,3), t (3,) the pose. Only the model
     points whose normals face the camera count (what the sensor could see of the posed model). Of the frame points
     within ``reach`` metres of those, a point within ``explain`` metres of one (at least ``tolerance``; None:
-    ``tolerance``; sparse model points need more) is *explained*; an unexplained one is
+    ``tolerance``; sparse model points need more) is *explained*; an unexplained one at least ``beyond`` metres
+    from them (nearer ones may be the object's own points, off its model by the sensor's noise) is
     *continued* when it lies within ``tolerance`` of the tangent plane of its nearest visible model point and the
     frame's surface there (its normal from its ``neighbours`` nearest frame points) is parallel to that plane
     (|cos| > ``min_cos``): the surface goes on where the model's ends. A real object's faces end at its outline (the
@@ -166,7 +167,7 @@ def surface_continuation(cloud: np.ndarray, cloud_tree: cKDTree, model_points: n
     near, d, j = near[ok], d[ok], j[ok]
     explained = d <= max(tolerance, explain or 0.0)
     c = cloud[near]
-    in_plane = ~explained & (np.abs(np.einsum("ij,ij->i", c - X[j], N[j])) <= tolerance)
+    in_plane = (d > beyond) & ~explained & (np.abs(np.einsum("ij,ij->i", c - X[j], N[j])) <= tolerance)
     cand = np.flatnonzero(in_plane)
     if len(cand) == 0:
         return int(explained.sum()), 0
@@ -202,7 +203,7 @@ def continuation_checked(detections: list, cloud: np.ndarray, objects, cfg, clou
         explained, continued = surface_continuation(cloud, tree, points, normals, d.R, d.t,
                                                     cfg.continuation_tolerance,
                                                     cfg.continuation_reach * objects.diameters[d.obj_id],
-                                                    explain=1.5 * spacing)
+                                                    explain=1.5 * spacing, beyond=cfg.continuation_gap)
         ratio = continued / max(explained, 1)
         out.append(replace(d, score=float(d.score * min(1.0, cfg.continuation_limit / ratio))) if ratio > 0 else d)
     return out
