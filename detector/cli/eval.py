@@ -129,6 +129,10 @@ def register(app: typer.Typer) -> None:
                     "without it a printed object's way round is left unchecked")
             typer.echo(f"detector: warning: {checkpoint.name} reads colour ({', '.join(readers)}) and {input} has "
                        f"none (give the colour image with --rgb): {cost}", err=True)
+        if cfg.continuation_check and not objects.surfaces:
+            typer.echo(f"detector: warning: geometry.continuation_check is on, but {checkpoint.name} was trained "
+                       "without the objects' surface normals (label files written before 2026-12-07): nothing is "
+                       "checked", err=True)
         res = predict(network_predictor(ckpt, seed), inp, objects, out, cfg, names,
                       poser=checkpoint_poser(ckpt, objects, device, seed, infer_sets), max_depth=depth)
         for d in res["detections"]:
