@@ -100,7 +100,8 @@ def estimate(preds: Predictions, objects: ObjectInfo, cfg: GeometryConfig, timin
         t_check += time.perf_counter() - t0
     if frame is not None and cfg.depth_check and timings is not None:
         timings["depth_check"] = timings.get("depth_check", 0.0) + t_check
-    if cfg.continuation_check and cloud is not None and (dets or refined):  # the poses that would be kept
+    # the poses that would be kept, where the objects carry surface normals (without, nothing is checked: no tree)
+    if cfg.continuation_check and cloud is not None and objects.surfaces and (dets or refined):
         t0 = time.perf_counter()
         tree = cKDTree(np.asarray(cloud, np.float64))
         dets = continuation_checked([d for d in dets if d.score >= lo], cloud, objects, cfg, tree)
