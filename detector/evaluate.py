@@ -106,7 +106,7 @@ def evaluate(predictor: Predictor, label_path: str | Path, out_dir: str | Path, 
             preds = predictor(frame)
             timings = dict(preds.timings)
             res = dict(zip(("noicp", "icp"), estimate(preds, objects, cfg, timings, frame.features[:, :3], poser,
-                                                      frame.features)))
+                                                      frame.features, check_unrefined=True)))
             frame_time = time.perf_counter() - t0
             timings["total"] = frame_time
             times.append(timings)

@@ -14,7 +14,6 @@ import time
 from dataclasses import replace
 
 import numpy as np
-from scipy.spatial import cKDTree
 
 from argen.features import check_max_depth
 from detector.config import apply_set_options, parse_set_options
@@ -36,8 +35,8 @@ CHOICE_POINTS = 250
 
 
 def estimate(preds: Predictions, objects: ObjectInfo, cfg: GeometryConfig, timings: dict | None = None,
-             cloud: np.ndarray | None = None, poser=None, features: np.ndarray | None = None
-             ) -> tuple[list[Detection], list[Detection] | None]:
+             cloud: np.ndarray | None = None, poser=None, features: np.ndarray | None = None,
+             check_unrefined: bool | None = None) -> tuple[list[Detection], list[Detection] | None]:
     """Detections of one frame without and (when ``cfg.icp``) with ICP refinement; stage seconds into ``timings``.
 
     cloud: (M,3) metres, the frame's full point cloud, for ICP (see :func:`detector.geometry.icp.refine`); None: the
@@ -61,8 +60,9 @@ def estimate(preds: Predictions, objects: ObjectInfo, cfg: GeometryConfig, timin
     chooses among each detection's ICP results (:func:`detector.geometry.icp.chosen_result`). With
     ``cfg.continuation_check`` and a cloud, last, the score of a pose that would be kept falls where the frame's
     surfaces run on past its model (:func:`detector.geometry.verify.continuation_checked`: a pose on part of a
-    larger thing), before and after ICP. Adds "depth_check" seconds (the range image's too) and
-    "continuation_check" seconds.
+    larger thing): the poses after ICP, and the unrefined ones where they are the output (without ICP) or
+    ``check_unrefined`` asks for them (an evaluation that reports both; None: only where they are the output).
+    Adds "depth_check" seconds (the range image's too) and "continuation_check" seconds.
     """
     dets = detect(preds.xyz, preds.obj_ids, preds.confidence, preds.control_points, objects, cfg, timings)
     if poser is not None:
@@ -100,13 +100,13 @@ def estimate(preds: Predictions, objects: ObjectInfo, cfg: GeometryConfig, timin
         t_check += time.perf_counter() - t0
     if frame is not None and cfg.depth_check and timings is not None:
         timings["depth_check"] = timings.get("depth_check", 0.0) + t_check
-    # the poses that would be kept, where the objects carry surface normals (without, nothing is checked: no tree)
-    if cfg.continuation_check and cloud is not None and objects.surfaces and (dets or refined):
+    # the poses that would be kept, where the objects carry surface normals; the unrefined ones where they count
+    if cfg.continuation_check and cloud is not None and objects.surfaces:
         t0 = time.perf_counter()
-        tree = cKDTree(np.asarray(cloud, np.float64))
-        dets = continuation_checked([d for d in dets if d.score >= lo], cloud, objects, cfg, tree)
+        if refined is None or check_unrefined:
+            dets = continuation_checked([d for d in dets if d.score >= lo], cloud, objects, cfg)
         if refined is not None:
-            refined = continuation_checked([d for d in refined if d.score >= cfg.min_score], cloud, objects, cfg, tree)
+            refined = continuation_checked([d for d in refined if d.score >= cfg.min_score], cloud, objects, cfg)
         if timings is not None:
             timings["continuation_check"] = timings.get("continuation_check", 0.0) + time.perf_counter() - t0
     return ([d for d in dets if d.score >= lo],

@@ -7,7 +7,6 @@ from dataclasses import replace
 
 import numpy as np
 import trimesh
-from scipy.spatial import cKDTree
 
 from argen.h5 import LabelFile, write_label_file
 from argen.label import object_table, sample_surface, sample_surface_normals
@@ -42,14 +41,14 @@ POSE = (np.eye(3), np.array([0.0, 0.0, 0.985]))  # the box's front face at 0.97 
 
 def ratio(cloud: np.ndarray, objects: ObjectInfo, cfg=GeometryConfig()) -> tuple[int, int]:
     pts, normals = objects.surfaces[1]
-    return surface_continuation(cloud, cKDTree(cloud), pts, normals, *POSE, cfg.continuation_tolerance,
+    return surface_continuation(cloud, pts, normals, *POSE, cfg.continuation_tolerance,
                                 cfg.continuation_reach * objects.diameters[1], 1.5 * objects.surface_spacing(1),
                                 beyond=cfg.continuation_gap)
 
 
 def test_a_real_box_explains_its_face_and_nothing_runs_on_past_it():
     explained, continued = ratio(depth_cloud(BOX[:2]), box_objects())
-    assert explained > 500
+    assert explained > 250  # of the 1000 or so frame points counted in the box around it
     assert continued <= 0.01 * explained  # the desk beyond its outline is 3 cm behind the face's plane
 
 
@@ -67,7 +66,7 @@ def test_points_just_past_the_outline_are_not_counted_within_the_gap():
     cfg = GeometryConfig()
     assert cfg.continuation_gap >= 0.01
     assert ratio(depth_cloud(wider), box_objects())[1] <= ratio(depth_cloud(BOX[:2]), box_objects())[1] + 2
-    assert ratio(depth_cloud(wider), box_objects(), replace(cfg, continuation_gap=0.0))[1] > 50
+    assert ratio(depth_cloud(wider), box_objects(), replace(cfg, continuation_gap=0.0))[1] > 25
 
 
 def test_continuation_checked_lowers_only_the_pose_on_the_slab():
@@ -78,8 +77,8 @@ def test_continuation_checked_lowers_only_the_pose_on_the_slab():
     assert kept.score == det.score
     explained, continued = ratio(depth_cloud(SLAB), objects)
     lowered = continuation_checked([det], depth_cloud(SLAB), objects, cfg)[0]
-    assert np.isclose(lowered.score, 0.9 * cfg.continuation_limit / (continued / explained))
-    assert lowered.score < 0.1
+    assert np.isclose(lowered.score, 0.9 * np.sqrt(cfg.continuation_limit / (continued / explained)))
+    assert lowered.score < 0.2  # far under any model's min_score
     # an object without surface normals (a model whose table lacked them) is not checked
     bare = replace(objects, surfaces={})
     assert continuation_checked([det], depth_cloud(SLAB), bare, cfg)[0].score == det.score

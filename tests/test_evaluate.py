@@ -414,7 +414,7 @@ def test_a_higher_scoring_far_pose_is_the_answer_for_add_while_f1_counts_every_d
     with LabelFile(label_file) as lf:
         dia = {int(o): float(d) for o, d in zip(lf.objects.ids, lf.objects.diameters)}
 
-    def fake_estimate(preds, objects, cfg, timings, cloud, poser, features):
+    def fake_estimate(preds, objects, cfg, timings, cloud, poser, features, check_unrefined=None):
         inst = fake_estimate.frame.instances
         valid = np.flatnonzero(inst.visib_fract >= 0.1)
         dets = [Detection(int(inst.obj_id[g]), 0.5, inst.R[g].astype(float), inst.t[g].astype(float), 1,

@@ -134,25 +134,24 @@ def depth_checked(detections: list, frame: RangeImage, objects, cfg, refined: bo
     return [replace(d, score=float(d.score * min(1.0, c / need))) for d, c in zip(detections, cons)]
 
 
-def surface_continuation(cloud: np.ndarray, cloud_tree: cKDTree, model_points: np.ndarray,
-                         model_normals: np.ndarray, R: np.ndarray, t: np.ndarray, tolerance: float, reach: float,
-                         explain: float | None = None, beyond: float = 0.0, min_cos: float = 0.9,
-                         neighbours: int = 16, max_points: int | None = 2000) -> tuple[int, int]:
+def surface_continuation(cloud: np.ndarray, model_points: np.ndarray, model_normals: np.ndarray, R: np.ndarray,
+                         t: np.ndarray, tolerance: float, reach: float, explain: float | None = None,
+                         beyond: float = 0.0, min_cos: float = 0.9, neighbours: int = 16,
+                         max_points: int | None = 1000) -> tuple[int, int]:
     """How far the frame's surfaces run on past a pose's model: (explained, continued) frame point counts.
 
-    cloud: (M,3) the frame's points, camera metres, and ``cloud_tree`` a cKDTree of them; model_points (P,3)
-    model frame metres and model_normals (P,3) their outward unit normals; R (3,3), t (3,) the pose. Only the model
-    points whose normals face the camera count (what the sensor could see of the posed model). Of the frame points
-    within ``reach`` metres of those, a point within ``explain`` metres of one (at least ``tolerance``; None:
-    ``tolerance``; sparse model points need more) is *explained*; an unexplained one at least ``beyond`` metres
-    from them (nearer ones may be the object's own points, off its model by the sensor's noise) is
-    *continued* when it lies within ``tolerance`` of the tangent plane of its nearest visible model point and the
-    frame's surface there (its normal from its ``neighbours`` nearest frame points) is parallel to that plane
-    (|cos| > ``min_cos``): the surface goes on where the model's ends. A real object's faces end at its outline (the
-    frame beyond is further, nearer, or a surface at an angle: the table under it); a pose on part of a larger
-    thing has the thing's surfaces continue in its faces' planes. max_points: the frame points in the model's box
-    (grown by ``reach``) are counted every k-th, k the smallest step that leaves at most about this many (None:
-    all); the counts then fall by about k, their ratio stays.
+    cloud: (M,3) the frame's points, camera metres; model_points (P,3) model frame metres and model_normals (P,3)
+    their outward unit normals; R (3,3), t (3,) the pose. Only the model points whose normals face the camera count
+    (what the sensor could see of the posed model). The frame points in the model's box grown by ``reach`` metres
+    are counted every k-th, k the smallest step that leaves at most about ``max_points`` (None: all; the counts
+    then fall by about k, their ratio stays). Of those within ``reach`` of the model, a point within ``explain``
+    metres of it (at least ``tolerance``; None: ``tolerance``; sparse model points need more) is *explained*; an
+    unexplained one at least ``beyond`` metres from it (nearer ones may be the object's own points, off its model
+    by the sensor's noise) is *continued* when it lies within ``tolerance`` of the tangent plane of its nearest
+    visible model point and the frame's surface there (its normal from its ``neighbours`` nearest counted points)
+    is parallel to that plane (|cos| > ``min_cos``): the surface goes on where the model's ends. A real object's
+    faces end at its outline (the frame beyond is further, nearer, or a surface at an angle: the table under it); a
+    pose on part of a larger thing has the thing's surfaces continue in its faces' planes.
     """
     X = np.asarray(model_points, np.float64) @ np.asarray(R, np.float64).T + np.asarray(t, np.float64)
     N = np.asarray(model_normals, np.float64) @ np.asarray(R, np.float64).T
@@ -160,39 +159,40 @@ def surface_continuation(cloud: np.ndarray, cloud_tree: cKDTree, model_points: n
     X, N = X[facing], N[facing]
     if len(X) == 0 or len(cloud) == 0:
         return 0, 0
-    near = np.flatnonzero(np.all((cloud > X.min(axis=0) - reach) & (cloud < X.max(axis=0) + reach), axis=1))
+    lo, hi = X.min(axis=0) - reach, X.max(axis=0) + reach
+    near = np.flatnonzero((cloud[:, 0] > lo[0]) & (cloud[:, 0] < hi[0]))  # x first: a third of the comparisons
+    near = near[np.all((cloud[near, 1:] > lo[1:]) & (cloud[near, 1:] < hi[1:]), axis=1)]
     near = near[::max(1, len(near) // max_points)] if max_points else near  # the counts' ratio, for less time
     d, j = cKDTree(X).query(cloud[near], distance_upper_bound=reach)
     ok = np.isfinite(d)
-    near, d, j = near[ok], d[ok], j[ok]
+    c, d, j = cloud[near[ok]], d[ok], j[ok]
     explained = d <= max(tolerance, explain or 0.0)
-    c = cloud[near]
     in_plane = (d > beyond) & ~explained & (np.abs(np.einsum("ij,ij->i", c - X[j], N[j])) <= tolerance)
     cand = np.flatnonzero(in_plane)
     if len(cand) == 0:
         return int(explained.sum()), 0
-    k = min(neighbours, len(cloud))
-    _, nb = cloud_tree.query(c[cand], k=k)
-    pts = cloud[nb.reshape(len(cand), k)]
+    k = min(neighbours, len(c))
+    _, nb = cKDTree(c).query(c[cand], k=k)
+    pts = c[nb.reshape(len(cand), k)]
     centred = pts - pts.mean(axis=1, keepdims=True)
     _, vecs = np.linalg.eigh(np.einsum("nki,nkj->nij", centred, centred))
     parallel = np.abs(np.einsum("ij,ij->i", vecs[:, :, 0], N[j[cand]])) > min_cos
     return int(explained.sum()), int(parallel.sum())
 
 
-def continuation_checked(detections: list, cloud: np.ndarray, objects, cfg, cloud_tree: cKDTree | None = None) -> list:
+def continuation_checked(detections: list, cloud: np.ndarray, objects, cfg) -> list:
     """Copies of ``detections`` whose scores fall where the frame's surfaces run on past their models
     (:func:`surface_continuation`): a detection with more than ``cfg.continuation_limit`` continued frame points per
-    explained one has its score scaled by limit / that ratio. cloud: (M,3) the frame's points, camera metres
-    (``cloud_tree``: a cKDTree of them, built here when None); objects: the
-    :class:`detector.geometry.types.ObjectInfo` (a detection of an object without surface normals,
+    explained one has its score scaled by the square root of limit / that ratio (a softer fall than the ratio's
+    own: a right pose beside a surface in its face's plane by chance, as on a simulated LineMOD board, loses less,
+    and a pose on part of a larger thing runs on past it by more). cloud: (M,3) the frame's points, camera metres;
+    objects: the :class:`detector.geometry.types.ObjectInfo` (a detection of an object without surface normals,
     ``objects.surfaces``, keeps its score); cfg: the :class:`detector.geometry.types.GeometryConfig`
     (``continuation_tolerance`` metres, ``continuation_reach`` a fraction of the object's diameter). A frame point
     within 1.5 sample spacings of the model's samples counts as explained, however sparse they are."""
     if not any(d.obj_id in objects.surfaces for d in detections):
         return list(detections)
     cloud = np.asarray(cloud, np.float64)
-    tree = cloud_tree if cloud_tree is not None else cKDTree(cloud)
     out = []
     for d in detections:
         if d.obj_id not in objects.surfaces:
@@ -200,10 +200,10 @@ def continuation_checked(detections: list, cloud: np.ndarray, objects, cfg, clou
             continue
         points, normals = objects.surfaces[d.obj_id]
         spacing = objects.surface_spacing(d.obj_id)
-        explained, continued = surface_continuation(cloud, tree, points, normals, d.R, d.t,
-                                                    cfg.continuation_tolerance,
+        explained, continued = surface_continuation(cloud, points, normals, d.R, d.t, cfg.continuation_tolerance,
                                                     cfg.continuation_reach * objects.diameters[d.obj_id],
                                                     explain=1.5 * spacing, beyond=cfg.continuation_gap)
         ratio = continued / max(explained, 1)
-        out.append(replace(d, score=float(d.score * min(1.0, cfg.continuation_limit / ratio))) if ratio > 0 else d)
+        scale = min(1.0, float(np.sqrt(cfg.continuation_limit / ratio))) if ratio > 0 else 1.0
+        out.append(replace(d, score=float(d.score * scale)) if scale < 1.0 else d)
     return out
