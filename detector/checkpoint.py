@@ -11,7 +11,9 @@ from typing import Any
 
 import torch
 
-from detector.errors import DetectorError
+from argen.h5 import LabelFile
+from detector.data.frames import object_table_dict
+from detector.errors import DetectorError, argen_errors
 from detector.stage1.network import ModelConfig, PointNet2
 from detector.stage1.sampling import SamplingConfig
 from detector.stage2.network import build_stage2_net
@@ -133,3 +135,35 @@ def save_two_stage(path: str | Path, stage1: dict, stage2: dict, extra: dict | N
     atomic_torch_save({"format": FORMAT, "version": TWO_STAGE_VERSION, "stage1": d, "stage2": p, "extra": extra or {}},
                       path)
     return path
+
+
+def add_surfaces(path: str | Path, label_path: str | Path, out: str | Path | None = None) -> Path:
+    """Write a model file whose object table also carries the label file's surface samples and their normals
+    (``surface_points`` (S,3) metres and ``surface_normals`` (S,3) unit, per object: what the surface-continuation
+    check needs, :func:`detector.geometry.verify.continuation_checked`), for a model trained on a label file written
+    before they existed. The weights and every other field stay as they were; the label file must carry the normals
+    and every one of the model's objects, with the same diameters (the same meshes). out: the file written
+    (atomically; None: ``path`` itself). A label file of the same meshes written with ``argen label``'s default seed
+    carries the same samples as the model's training file would have."""
+    payload = read_checkpoint(path)
+    part = payload["stage1"] if "stage1" in payload else payload
+    objects = part["objects"]
+    with argen_errors():
+        with LabelFile(label_path) as lf:
+            table = object_table_dict(lf.objects)
+    where = {int(i): k for k, i in enumerate(table["ids"])}
+    points, normals = [], []
+    for i, dia in zip(objects["ids"], objects["diameters"]):
+        k = where.get(int(i))
+        if k is None or k >= len(table["surface_points"]) or not len(table["surface_points"][k]):
+            raise DetectorError(f"{label_path} carries no surface normals of object {i} (label files written before "
+                                "2026-12-07 lack them: run argen label again)")
+        if abs(float(table["diameters"][k]) - float(dia)) > 1e-4 * max(float(dia), 1e-9):
+            raise DetectorError(f"object {i}'s diameter is {float(table['diameters'][k]):.4f} m in {label_path} and "
+                                f"{float(dia):.4f} m in {path}: not the same mesh")
+        points.append(table["surface_points"][k])
+        normals.append(table["surface_normals"][k])
+    part["objects"] = {**objects, "surface_points": points, "surface_normals": normals}
+    target = Path(out) if out is not None else Path(path)
+    atomic_torch_save(payload, target)
+    return target

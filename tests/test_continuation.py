@@ -6,6 +6,7 @@ argen label writes for it."""
 from dataclasses import replace
 
 import numpy as np
+import pytest
 import trimesh
 
 from argen.h5 import LabelFile, write_label_file
@@ -134,3 +135,51 @@ def test_predict_with_the_check_and_a_model_without_normals_warns_and_still_pred
     assert (tmp_path / "on" / "poses.json").is_file()
     r = CliRunner().invoke(det_app, [*args, str(tmp_path / "off")])
     assert r.exit_code == 0 and "continuation_check" not in r.output, r.output
+
+
+def _model_file(path, table, with_surfaces: bool):
+    """A two-stage model file's object table (no weights: add_surfaces reads and writes the dict only)."""
+    import torch
+
+    from detector.data.frames import object_table_dict
+    from detector.training.checkpoint_file import FORMAT, TWO_STAGE_VERSION
+
+    objects = object_table_dict(table)
+    if not with_surfaces:
+        objects = {k: v for k, v in objects.items() if not k.startswith("surface_")}
+    torch.save({"format": FORMAT, "version": TWO_STAGE_VERSION, "stage1": {"objects": objects, "step": 7},
+                "stage2": {"step": 3}, "extra": {"geometry_config": {"min_score": 0.65}}}, path)
+    return path
+
+
+def test_add_surfaces_gives_an_older_model_the_label_files_normals_and_changes_nothing_else(tmp_path):
+    import torch
+
+    from detector.checkpoint import add_surfaces
+    from detector.errors import DetectorError
+
+    table = object_table(builtin_objects(["bottle", "duck"]), n_points=200, seed=0)
+    attrs = dict(created_by="test", source_dataset="synthetic", source_split="test", source_argen_json="",
+                 max_points=500, max_depth=2.0, subsampling="voxel+random")
+    label = write_label_file(tmp_path / "t.h5", attrs, table, [])
+    old = _model_file(tmp_path / "old.pt", table, with_surfaces=False)
+    assert ObjectInfo.from_table(torch.load(old, weights_only=True)["stage1"]["objects"]).surfaces == {}
+    new = add_surfaces(old, label, tmp_path / "new.pt")
+    before, after = torch.load(old, weights_only=True), torch.load(new, weights_only=True)
+    info = ObjectInfo.from_table(after["stage1"]["objects"])
+    for k, i in enumerate(table.ids):
+        np.testing.assert_allclose(info.surfaces[int(i)][0], table.surface_points[k], atol=1e-7)
+        np.testing.assert_allclose(info.surfaces[int(i)][1], table.surface_normals[k], atol=1e-7)
+    assert {k: v for k, v in after["stage1"]["objects"].items() if not k.startswith("surface_")} \
+        == before["stage1"]["objects"]
+    assert after["stage2"] == before["stage2"] and after["extra"] == before["extra"]
+    # another mesh of the same id (its diameter differs), or a label file without normals: refused, nothing written
+    other = object_table(builtin_objects(["bottle", "duck"]), n_points=200, seed=0)
+    other.diameters[0] *= 1.1
+    bad = _model_file(tmp_path / "bad.pt", other, with_surfaces=False)
+    with pytest.raises(DetectorError, match="not the same mesh"):
+        add_surfaces(bad, label, tmp_path / "bad_out.pt")
+    bare = replace(table, surface_points=[], surface_normals=[])
+    with pytest.raises(DetectorError, match="no surface normals"):
+        add_surfaces(old, write_label_file(tmp_path / "bare.h5", attrs, bare, []), tmp_path / "bare_out.pt")
+    assert not (tmp_path / "bad_out.pt").exists() and not (tmp_path / "bare_out.pt").exists()
