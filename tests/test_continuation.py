@@ -117,23 +117,29 @@ def test_the_object_table_carries_surface_normals_through_a_label_file(tmp_path)
 
 
 def test_predict_with_the_check_and_a_model_without_normals_warns_and_still_predicts(tmp_path):
-    """checkpoints/ycbv3.pt was trained before label files carried surface normals: asked for the check, detector
-    predict says that nothing is checked, and predicts the frame as before (exit 0, poses.json written)."""
+    """A model trained before label files carried surface normals (checkpoints/ycbv3.pt without them): asked for
+    the check, detector predict says that nothing is checked, and predicts the frame as before (exit 0, poses.json
+    written)."""
     from pathlib import Path
 
     import cv2
+    import torch
     from typer.testing import CliRunner
 
     from detector.cli.app import app as det_app
 
-    model = Path(__file__).resolve().parents[1] / "checkpoints" / "ycbv3.pt"
+    payload = torch.load(Path(__file__).resolve().parents[1] / "checkpoints" / "ycbv3.pt", weights_only=True)
+    objects = payload["stage1"]["objects"]
+    payload["stage1"]["objects"] = {k: v for k, v in objects.items() if not k.startswith("surface_")}
+    model = tmp_path / "old.pt"
+    torch.save(payload, model)
     cv2.imwrite(str(tmp_path / "depth.png"), np.full((480, 640), 900, np.uint16))  # a wall 0.9 m away, mm
     args = ["predict", str(model), str(tmp_path / "depth.png"), "--K", "1066,1067,313,241", "--out"]
-    r = CliRunner().invoke(det_app, [*args, str(tmp_path / "on"), "--set", "geometry.continuation_check=true"])
+    r = CliRunner().invoke(det_app, [*args, str(tmp_path / "on")])  # the check is on by default
     assert r.exit_code == 0, r.output
     assert "continuation_check is on" in r.output and "nothing is checked" in r.output, r.output
     assert (tmp_path / "on" / "poses.json").is_file()
-    r = CliRunner().invoke(det_app, [*args, str(tmp_path / "off")])
+    r = CliRunner().invoke(det_app, [*args, str(tmp_path / "off"), "--set", "geometry.continuation_check=false"])
     assert r.exit_code == 0 and "continuation_check" not in r.output, r.output
 
 

@@ -132,7 +132,7 @@ def register(app: typer.Typer) -> None:
         if cfg.continuation_check and not objects.surfaces:
             typer.echo(f"detector: warning: geometry.continuation_check is on, but {checkpoint.name} was trained "
                        "without the objects' surface normals (label files written before 2026-12-07): nothing is "
-                       "checked", err=True)
+                       "checked (README: detector.checkpoint.add_surfaces adds them to the model file)", err=True)
         res = predict(network_predictor(ckpt, seed), inp, objects, out, cfg, names,
                       poser=checkpoint_poser(ckpt, objects, device, seed, infer_sets), max_depth=depth)
         for d in res["detections"]:

@@ -78,7 +78,7 @@ class GeometryConfig:
     continuation_check: lower the score of a detection whose model the frame's surfaces run on past, in the planes of
     its faces (:func:`detector.geometry.verify.continuation_checked`: a pose on part of a larger thing, a box on a
     keyboard's edge); needs the frame's cloud and the objects' surface normals (label files written since
-    2026-12-07 carry them, and so do the models trained on them; off by default); with ICP only the poses after
+    2026-12-07 carry them, and so do the models trained on them; on by default); with ICP only the poses after
     it are checked unless an evaluation asks for both (:func:`detector.infer.estimate`); continuation_limit:
     continued frame points per explained one above which the score is scaled by the square root of limit / ratio (on the 10
     ycbv_real frames, 8 sampling seeds, ``ycbv3.pt``'s poses within 2 cm of their object are at most 0.025, its
@@ -123,7 +123,7 @@ class GeometryConfig:
     other_classes: float = 0.1
     colour_check: bool = True
     part_check: bool = True
-    continuation_check: bool = False
+    continuation_check: bool = True
     continuation_limit: float = 0.03
     continuation_tolerance: float = 0.005
     continuation_reach: float = 0.3
