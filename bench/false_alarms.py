@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import argparse
 import re
+import sys
 import tempfile
 from pathlib import Path
 
@@ -55,6 +56,9 @@ def main() -> None:
         poser = checkpoint_poser(ckpt, objects, "cpu", 0, infer_sets)
     except DetectorError as e:
         raise SystemExit(f"false_alarms.py: {e}") from None
+    if cfg.continuation_check and not objects.surfaces:
+        print(f"warning: {a.ckpt} carries no surface normals: the surface-continuation check checks nothing "
+              "(detector.checkpoint.add_surfaces adds them)", file=sys.stderr)
     predictor = network_predictor(ckpt, 0)
     depth = checkpoint_max_depth(ckpt, a.max_depth)
     total = frames = 0

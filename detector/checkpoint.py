@@ -141,13 +141,19 @@ def add_surfaces(path: str | Path, label_path: str | Path, out: str | Path | Non
     """Write a model file whose object table also carries the label file's surface samples and their normals
     (``surface_points`` (S,3) metres and ``surface_normals`` (S,3) unit, per object: what the surface-continuation
     check needs, :func:`detector.geometry.verify.continuation_checked`), for a model trained on a label file written
-    before they existed. The weights and every other field stay as they were; the label file must carry the normals
+    before they existed. The weights and every other field stay as they were (a version-2 file is written with
+    version 3's key names, as :func:`read_checkpoint` reads it); the label file must carry the normals
     and every one of the model's objects, with the same diameters (the same meshes). out: the file written
     (atomically; None: ``path`` itself). A label file of the same meshes written with ``argen label``'s default seed
     carries the same samples as the model's training file would have."""
     payload = read_checkpoint(path)
+    if payload.get("version") == TWO_STAGE_VERSION and "stage1" not in payload:
+        raise DetectorError(f"{path} holds a stage-2 network only; use the two-stage model file (model.pt) "
+                            "that `detector train` writes")
     part = payload["stage1"] if "stage1" in payload else payload
-    objects = part["objects"]
+    objects = part.get("objects")
+    if not isinstance(objects, dict) or "ids" not in objects:
+        raise DetectorError(f"{path} carries no object table")
     with argen_errors():
         with LabelFile(label_path) as lf:
             table = object_table_dict(lf.objects)
@@ -155,7 +161,9 @@ def add_surfaces(path: str | Path, label_path: str | Path, out: str | Path | Non
     points, normals = [], []
     for i, dia in zip(objects["ids"], objects["diameters"]):
         k = where.get(int(i))
-        if k is None or k >= len(table["surface_points"]) or not len(table["surface_points"][k]):
+        if k is None:
+            raise DetectorError(f"object {i} of {path} is not in {label_path}")
+        if k >= len(table["surface_points"]) or not len(table["surface_points"][k]):
             raise DetectorError(f"{label_path} carries no surface normals of object {i} (label files written before "
                                 "2026-12-07 lack them: run argen label again)")
         if abs(float(table["diameters"][k]) - float(dia)) > 1e-4 * max(float(dia), 1e-9):

@@ -36,7 +36,7 @@ CHOICE_POINTS = 250
 
 def estimate(preds: Predictions, objects: ObjectInfo, cfg: GeometryConfig, timings: dict | None = None,
              cloud: np.ndarray | None = None, poser=None, features: np.ndarray | None = None,
-             check_unrefined: bool | None = None) -> tuple[list[Detection], list[Detection] | None]:
+             check_unrefined: bool = False) -> tuple[list[Detection], list[Detection] | None]:
     """Detections of one frame without and (when ``cfg.icp``) with ICP refinement; stage seconds into ``timings``.
 
     cloud: (M,3) metres, the frame's full point cloud, for ICP (see :func:`detector.geometry.icp.refine`); None: the
@@ -61,7 +61,7 @@ def estimate(preds: Predictions, objects: ObjectInfo, cfg: GeometryConfig, timin
     ``cfg.continuation_check`` and a cloud, last, the score of a pose that would be kept falls where the frame's
     surfaces run on past its model (:func:`detector.geometry.verify.continuation_checked`: a pose on part of a
     larger thing): the poses after ICP, and the unrefined ones where they are the output (without ICP) or
-    ``check_unrefined`` asks for them (an evaluation that reports both; None: only where they are the output).
+    ``check_unrefined`` asks for them (an evaluation that reports both).
     Adds "depth_check" seconds (the range image's too) and "continuation_check" seconds.
     """
     dets = detect(preds.xyz, preds.obj_ids, preds.confidence, preds.control_points, objects, cfg, timings)
@@ -176,6 +176,11 @@ def geometry_config(tau: float, icp: bool, base: GeometryConfig | None = None) -
                             f"{base.icp_depth_margin}")
     if not 0 <= base.icp_own_margin <= 1:
         raise DetectorError(f"geometry.icp_own_margin is a share in [0, 1], got {base.icp_own_margin}")
+    for key in ("continuation_limit", "continuation_tolerance", "continuation_reach"):
+        if not getattr(base, key) > 0:
+            raise DetectorError(f"geometry.{key} must be above 0, got {getattr(base, key)}")
+    if not base.continuation_gap >= 0:
+        raise DetectorError(f"geometry.continuation_gap is metres, at least 0, got {base.continuation_gap}")
     return replace(base, tau=tau, icp=icp)
 
 

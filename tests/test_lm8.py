@@ -14,6 +14,7 @@ from argen.cli.app import app as argen_app
 from argen.label import LabelConfig, LabelRequest, run_label
 from detector.checkpoint import load_checkpoint
 from detector.evaluate import evaluate
+from detector.geometry.types import ObjectInfo
 from detector.infer import checkpoint_geometry_config, checkpoint_objects, checkpoint_poser
 from detector.stage1.predictor import network_predictor
 
@@ -27,6 +28,12 @@ def test_shipped_model_is_small_and_complete():
     assert ck.stage2_net is not None and len(ck.class_ids) == 8
     assert sorted(ck.objects["names"]) == ["ape", "can", "cat", "driller", "duck", "eggbox", "glue", "holepuncher"]
     assert 0 < ck.geometry_config["tau"] < 1
+    # the surface-continuation check (on by default) needs each object's surface samples with unit normals
+    surfaces = ObjectInfo.from_table(ck.objects).surfaces
+    assert sorted(surfaces) == sorted(ck.class_ids)
+    for pts, normals in surfaces.values():
+        assert pts.shape == normals.shape and len(pts) >= 1000
+        assert np.allclose(np.linalg.norm(normals, axis=1), 1, atol=1e-4)
 
 
 def test_stage2_inference_settings_can_be_changed_for_a_run():

@@ -203,6 +203,16 @@ def test_a_bad_own_margin_is_refused(own):
         assert geometry_config(0.5, True, cfg).icp_own_margin == ok
 
 
+
+@pytest.mark.parametrize("setting", ["continuation_limit=0", "continuation_limit=-0.03", "continuation_tolerance=0",
+                                     "continuation_reach=.nan", "continuation_gap=-0.01"])
+def test_a_bad_continuation_setting_is_refused(setting):
+    """--set geometry.continuation_*: a limit, tolerance or reach not above 0, or a negative gap, is a one-line
+    error (a negative limit would turn scores into NaN, which every threshold then drops silently)."""
+    with pytest.raises(DetectorError, match=setting.split("=")[0]):
+        geometry_config(0.5, True, apply_set_options(GeometryConfig(), parse_set_options([setting])))
+    assert geometry_config(0.5, True, GeometryConfig()).continuation_gap == 0.01
+
 def test_without_the_settings_the_choice_is_the_best_fit():
     """With no depth margin and no own margin the candidate is the first best fit, as before the settings existed;
     a NaN margin or consistency measures nothing and leaves the fits to choose."""

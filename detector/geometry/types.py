@@ -80,13 +80,13 @@ class GeometryConfig:
     keyboard's edge); needs the frame's cloud and the objects' surface normals (label files written since
     2026-12-07 carry them, and so do the models trained on them; on by default); with ICP only the poses after
     it are checked unless an evaluation asks for both (:func:`detector.infer.estimate`); continuation_limit:
-    continued frame points per explained one above which the score is scaled by the square root of limit / ratio (on the 10
-    ycbv_real frames, 8 sampling seeds, ``ycbv3.pt``'s poses within 2 cm of their object are at most 0.025, its
-    other poses 0.037 at the 10th percentile, median 0.064; ``lm8.pt``'s right poses on a simulated LineMOD
-    capture 0.020 at most at the 90th percentile of any object); continuation_tolerance: metres, a frame point
-    this close to the posed model is explained, and this close to a face's plane lies in it; continuation_reach:
-    the frame points within this fraction of the diameter of the model's visible surface are looked at;
-    continuation_gap: metres, a continued point lies at least this far from the model (nearer ones may be the
+    continued frame points per explained one above which the score is scaled by the square root of limit / ratio
+    (on the 10 ycbv_real frames, 8 sampling seeds, ``ycbv3.pt``'s poses within 2 cm of their object are at most
+    0.025, its other poses 0.037 at the 10th percentile, median about 0.07; ``lm8.pt``'s right poses on a
+    simulated LineMOD capture about 0.02 at the 90th percentile, a few 0.04-0.06); continuation_tolerance: metres,
+    a frame point this close to the posed model is explained, and this close to a face's plane lies in it;
+    continuation_reach: the frame points within this fraction of the diameter of the model's visible surface are
+    looked at; continuation_gap: metres, a continued point lies at least this far from the model (nearer ones may be the
     object's own points, off its model by the sensor's noise: a Kinect v1's at 1 m).
     """
 

@@ -143,16 +143,18 @@ def surface_continuation(cloud: np.ndarray, model_points: np.ndarray, model_norm
     cloud: (M,3) the frame's points, camera metres; model_points (P,3) model frame metres and model_normals (P,3)
     their outward unit normals; R (3,3), t (3,) the pose. Only the model points whose normals face the camera count
     (what the sensor could see of the posed model). The frame points in the model's box grown by ``reach`` metres
-    are counted every k-th, k the smallest step that leaves at most about ``max_points`` (None: all; the counts
-    then fall by about k, their ratio stays). Of those within ``reach`` of the model, a point within ``explain``
-    metres of it (at least ``tolerance``; None: ``tolerance``; sparse model points need more) is *explained*; an
-    unexplained one at least ``beyond`` metres from it (nearer ones may be the object's own points, off its model
-    by the sensor's noise) is *continued* when it lies within ``tolerance`` of the tangent plane of its nearest
-    visible model point and the frame's surface there (its normal from its ``neighbours`` nearest counted points)
-    is parallel to that plane (|cos| > ``min_cos``): the surface goes on where the model's ends. A real object's
-    faces end at its outline (the frame beyond is further, nearer, or a surface at an angle: the table under it); a
-    pose on part of a larger thing has the thing's surfaces continue in its faces' planes.
+    are counted, ``max_points`` of them drawn at random where there are more (a fixed seed: the same frame and pose
+    give the same counts; None: all; the counts then fall in proportion, their ratio stays). Of those within
+    ``reach`` of the model, a point within ``explain`` metres of it (at least ``tolerance``; None: ``tolerance``;
+    sparse model points need more) is *explained*; an unexplained one at least ``beyond`` metres from it (nearer
+    ones may be the object's own points, off its model by the sensor's noise) is *continued* when it lies within
+    ``tolerance`` of the tangent plane of its nearest visible model point and the frame's surface there (its normal
+    from its ``neighbours`` nearest counted points) is parallel to that plane (|cos| > ``min_cos``; with fewer than
+    3 counted points nothing is continued: no surface to take a normal of): the surface goes on where the model's
+    ends. A real object's faces end at its outline (the frame beyond is further, nearer, or a surface at an angle:
+    the table under it); a pose on part of a larger thing has the thing's surfaces continue in its faces' planes.
     """
+    cloud = np.asarray(cloud, np.float64).reshape(-1, 3)
     X = np.asarray(model_points, np.float64) @ np.asarray(R, np.float64).T + np.asarray(t, np.float64)
     N = np.asarray(model_normals, np.float64) @ np.asarray(R, np.float64).T
     facing = np.einsum("ij,ij->i", N, -X) > 0.1 * np.linalg.norm(X, axis=1)
@@ -162,14 +164,16 @@ def surface_continuation(cloud: np.ndarray, model_points: np.ndarray, model_norm
     lo, hi = X.min(axis=0) - reach, X.max(axis=0) + reach
     near = np.flatnonzero((cloud[:, 0] > lo[0]) & (cloud[:, 0] < hi[0]))  # x first: a third of the comparisons
     near = near[np.all((cloud[near, 1:] > lo[1:]) & (cloud[near, 1:] < hi[1:]), axis=1)]
-    near = near[::max(1, len(near) // max_points)] if max_points else near  # the counts' ratio, for less time
+    if max_points and len(near) > max_points:  # the counts' ratio, for less time; random, as a frame's points are
+        # in image or voxel order, where every k-th would form a lattice (aliased bands, degenerate neighbourhoods)
+        near = np.sort(np.random.default_rng(0).choice(near, max_points, replace=False))
     d, j = cKDTree(X).query(cloud[near], distance_upper_bound=reach)
     ok = np.isfinite(d)
     c, d, j = cloud[near[ok]], d[ok], j[ok]
     explained = d <= max(tolerance, explain or 0.0)
     in_plane = (d > beyond) & ~explained & (np.abs(np.einsum("ij,ij->i", c - X[j], N[j])) <= tolerance)
     cand = np.flatnonzero(in_plane)
-    if len(cand) == 0:
+    if len(cand) == 0 or len(c) < 3:
         return int(explained.sum()), 0
     k = min(neighbours, len(c))
     _, nb = cKDTree(c).query(c[cand], k=k)
