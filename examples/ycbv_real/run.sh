@@ -26,9 +26,12 @@ INFER=(--set sampling.passes=1 --set geometry.min_votes=3)
 # point sampling at inference, before the tree-based one became the default (RESULTS.md): their evaluations and the
 # model files they train keep it (BEFORE)
 BEFORE=(--set sampling.fps=trained)
-# fresh REPORT: REPORT holds a report that records its farthest point sampling (one written before 2026-12-06 does
-# not, and may be of the default inference of then: it is made again)
-fresh() { grep -qs '"fps": "' "$1/report.json"; }  # the sampling's FPS, a string (frames per second: a number)
+# fresh REPORT: REPORT holds a report that records its farthest point sampling and its surface-continuation setting
+# (one written before 2026-12-06, or before that check, 2026-12-07, does not, and may be of the default inference of
+# then: it is made again)
+fresh() {  # the sampling's FPS, a string (frames per second: a number)
+  grep -qs '"fps": "' "$1/report.json" && grep -qs '"continuation_check"' "$1/report.json"
+}
 step() { local name=$1; shift; local t0; t0=$(date +%s); "$@"; echo "$name $(( $(date +%s) - t0 )) s" >> "$T"; }
 # train_beside KEEP R YAML [TRAIN OPTIONS]: the run folder R holds a copy of the run's finished stage KEEP (stage1 or
 # stage2) and YAML as its two_stage.yaml, and is trained on the capture with distractors (resumed: the finished stage
@@ -80,7 +83,8 @@ if [ -f "$RUN/two_stage.yaml" ] && [ ! -f "$RUN/model.pt" ]; then
 elif [ ! -f "$RUN/model.pt" ]; then
   step train $D train "$OUT/ycbv_train.h5" --stage1-data "$OUT/ycbv_stage1.h5" --out "$RUN" "${SETS[@]}" --quiet
 fi
-# 4. the real frames, without and with ICP (checkpoints/ycbv3.pt is $RUN/model.pt), and where the misses were lost
+# 4. the real frames, without and with ICP (checkpoints/ycbv3.pt is $RUN/model.pt, run from nothing), and where the
+#    misses were lost
 $D eval "$RUN/model.pt" "$OUT/ycbv_real.h5" --out "$REP" --icp --min-visib 0 --quiet
 .venv/bin/python bench/probe_misses.py "$RUN/model.pt" "$OUT/ycbv_real.h5" "$REP/report.json" --min-visib 0
 # 5. training length: each kept stage-2 snapshot with the run's stage 1, on the real frames
