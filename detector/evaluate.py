@@ -89,9 +89,8 @@ def evaluate(predictor: Predictor, label_path: str | Path, out_dir: str | Path, 
         in_file = ObjectInfo.from_table(table)
         if objects is None:
             objects = in_file
-        else:  # a model trained before its table carried surface normals takes the label file's, of the same objects
-            objects.surfaces.update({k: v for k, v in in_file.surfaces.items()
-                                     if k in objects.diameters and k not in objects.surfaces})
+        else:  # a model trained before its table carried surface normals takes the label file's, of the same meshes
+            objects.take_surfaces(in_file)
         if cfg.continuation_check and not objects.surfaces:
             print("warning: geometry.continuation_check is on, but neither the model nor the label file carries the "
                   "objects' surface normals (label files written before 2026-12-07): nothing is checked",

@@ -284,3 +284,16 @@ def test_add_surfaces_gives_an_older_model_the_label_files_normals_and_changes_n
     with pytest.raises(DetectorError, match="no surface normals"):
         add_surfaces(old, write_label_file(tmp_path / "bare.h5", attrs, bare, []), tmp_path / "bare_out.pt")
     assert not any((tmp_path / f).exists() for f in ("bad_out.pt", "bare_out.pt", "one_out.pt"))
+
+
+def test_a_model_without_normals_takes_a_label_files_only_for_the_same_meshes():
+    """detector eval gives a model trained before its table carried normals the label file's: only for objects it
+    has, lacks normals for, and whose diameter is the label file's (the same mesh under the same id)."""
+    label = box_objects()
+    label.surfaces[2] = label.surfaces[1]
+    label.diameters[2] = 0.2
+    model = ObjectInfo({1: np.zeros((9, 3)), 2: np.zeros((9, 3)), 3: np.zeros((9, 3))},
+                       {1: label.diameters[1], 2: 0.25, 3: 0.1}, {k: np.zeros((10, 3)) for k in (1, 2, 3)})
+    assert model.take_surfaces(label) == [1]
+    assert model.surfaces[1] is label.surfaces[1] and sorted(model.surfaces) == [1]
+    assert model.take_surfaces(label) == []  # what it has stays

@@ -260,6 +260,15 @@ class ObjectInfo:
             self._clouds[obj_id] = make_model_cloud(self.model_points[obj_id])
         return self._clouds[obj_id]
 
+    def take_surfaces(self, other: "ObjectInfo") -> list[int]:
+        """Copy into ``surfaces`` the surface samples and normals of ``other`` (e.g. a label file's objects) for the
+        objects this one has without them, where the diameters agree to 1e-4 of them (the same mesh under the same
+        id); returns the ids taken, ascending. For a model trained before its table carried the normals."""
+        taken = [k for k in sorted(other.surfaces) if k in self.diameters and k not in self.surfaces
+                 and abs(other.diameters.get(k, -1.0) - self.diameters[k]) <= 1e-4 * max(self.diameters[k], 1e-9)]
+        self.surfaces.update({k: other.surfaces[k] for k in taken})
+        return taken
+
     def surface_spacing(self, obj_id: int) -> float:
         """The median distance (metres) between neighbouring samples of ``obj_id``'s surface (one in ``surfaces``),
         cached."""
