@@ -17,6 +17,7 @@ import numpy as np
 
 from argen.features import check_max_depth
 from detector.config import apply_set_options, parse_set_options
+from detector.data.plane import dominant_plane
 from detector.errors import DetectorError, argen_errors
 from detector.geometry.colour_check import colour_checked
 from detector.geometry.icp import refine
@@ -60,9 +61,10 @@ def estimate(preds: Predictions, objects: ObjectInfo, cfg: GeometryConfig, timin
     chooses among each detection's ICP results (:func:`detector.geometry.icp.chosen_result`). With
     ``cfg.continuation_check`` and a cloud, last, the score of a pose that would be kept falls where the frame's
     surfaces run on past its model (:func:`detector.geometry.verify.continuation_checked`: a pose on part of a
-    larger thing): the poses after ICP, and the unrefined ones where they are the output (without ICP) or
-    ``check_unrefined`` asks for them (an evaluation that reports both).
-    Adds "depth_check" seconds (the range image's too) and "continuation_check" seconds.
+    larger thing; the frame's dominant plane, the table, counts as such only for a pose lying in it): the poses
+    after ICP, and the unrefined ones where they are the output (without ICP) or ``check_unrefined`` asks for them
+    (an evaluation that reports both). Adds "depth_check" seconds (the range image's too) and "continuation_check"
+    seconds.
     """
     dets = detect(preds.xyz, preds.obj_ids, preds.confidence, preds.control_points, objects, cfg, timings)
     if poser is not None:
@@ -103,10 +105,14 @@ def estimate(preds: Predictions, objects: ObjectInfo, cfg: GeometryConfig, timin
     # the poses that would be kept, where the objects carry surface normals; the unrefined ones where they count
     if cfg.continuation_check and cloud is not None and objects.surfaces:
         t0 = time.perf_counter()
+        # the surface the objects stand on: its points are not continued (a curved face meets it in its tangent
+        # plane) unless a pose lies in it; the same draw every call, so a frame's poses are checked alike
+        support = dominant_plane(np.asarray(cloud, np.float64), np.random.default_rng(0))
         if refined is None or check_unrefined:
-            dets = continuation_checked([d for d in dets if d.score >= lo], cloud, objects, cfg)
+            dets = continuation_checked([d for d in dets if d.score >= lo], cloud, objects, cfg, support)
         if refined is not None:
-            refined = continuation_checked([d for d in refined if d.score >= cfg.min_score], cloud, objects, cfg)
+            refined = continuation_checked([d for d in refined if d.score >= cfg.min_score], cloud, objects, cfg,
+                                           support)
         if timings is not None:
             timings["continuation_check"] = timings.get("continuation_check", 0.0) + time.perf_counter() - t0
     return ([d for d in dets if d.score >= lo],

@@ -60,6 +60,24 @@ def test_a_box_posed_on_part_of_a_larger_slab_has_the_slab_run_on_in_its_faces_p
     assert continued > 0.5 * explained
 
 
+def test_the_surface_the_objects_stand_on_is_not_continued_unless_the_pose_lies_in_it():
+    """A face in the plane of the table beside the model (a curved face meets it in its tangent plane) is not a pose
+    on part of a larger thing: with the slab's points beside the box marked as the frame's support surface nothing
+    is continued, with the desk's marked the slab still is. A pose the support surface itself explains (the whole
+    slab marked: the box would lie in the table) is still checked."""
+    objects, cfg = box_objects(), GeometryConfig()
+    pts, normals = objects.surfaces[1]
+    cloud = depth_cloud(SLAB)
+    args = (cloud, pts, normals, *POSE, cfg.continuation_tolerance, cfg.continuation_reach * objects.diameters[1],
+            1.5 * objects.surface_spacing(1), cfg.continuation_gap)
+    explained, continued = surface_continuation(*args)
+    assert continued > 0.5 * explained
+    on_slab = cloud[:, 2] < 0.99
+    beside = on_slab & ((np.abs(cloud[:, 0]) > BOX[0] / 2 + 0.005) | (np.abs(cloud[:, 1]) > BOX[1] / 2 + 0.005))
+    assert surface_continuation(*args, support=beside) == (explained, 0)
+    assert surface_continuation(*args, support=~on_slab) == (explained, continued)
+    assert surface_continuation(*args, support=on_slab) == (explained, continued)
+
 def test_points_just_past_the_outline_are_not_counted_within_the_gap():
     """A face seen 7 mm wider on every side than the model's (the sensor's noise and blur at an outline) runs on
     within the gap only: nothing counted; without the gap it would be."""
@@ -125,7 +143,8 @@ def test_estimate_checks_the_output_poses_and_the_unrefined_ones_only_where_they
     monkeypatch.setattr(infer, "detect", lambda *a, **k: [det])
     monkeypatch.setattr(infer, "refine", lambda dets, *a, **k: [replace(d, refined=True) for d in dets])
 
-    def check(dets, cloud, objects, cfg):
+    def check(dets, cloud, objects, cfg, support):
+        assert support.shape == (len(cloud),) and support.dtype == bool
         checked.append([d.refined for d in dets])
         return [replace(d, score=0.5 * d.score) for d in dets]
 

@@ -77,9 +77,10 @@ class GeometryConfig:
     frame's cloud and a model whose label file carried the part symmetry (``ObjectInfo.part_symmetries``);
     continuation_check: lower the score of a detection whose model the frame's surfaces run on past, in the planes of
     its faces (:func:`detector.geometry.verify.continuation_checked`: a pose on part of a larger thing, a box on a
-    keyboard's edge); needs the frame's cloud and the objects' surface normals (label files written since
-    2026-12-07 carry them, and so do the models trained on them; on by default); with ICP only the poses after
-    it are checked unless an evaluation asks for both (:func:`detector.infer.estimate`); continuation_limit:
+    keyboard's edge; the frame's dominant plane, the table, counts only for a pose lying in it); needs the frame's
+    cloud and the objects' surface normals (label files written since 2026-12-07 carry them, and so do the models
+    trained on them; on by default); with ICP only the poses after it are checked unless an evaluation asks for
+    both (:func:`detector.infer.estimate`); continuation_limit:
     continued frame points per explained one above which the score is scaled by the square root of limit / ratio
     (on the 10 ycbv_real frames, 8 sampling seeds, ``ycbv3.pt``'s poses within 2 cm of their object are at most
     0.025, its other poses 0.037 at the 10th percentile, median about 0.07; ``lm8.pt``'s right poses on a

@@ -137,7 +137,7 @@ def depth_checked(detections: list, frame: RangeImage, objects, cfg, refined: bo
 def surface_continuation(cloud: np.ndarray, model_points: np.ndarray, model_normals: np.ndarray, R: np.ndarray,
                          t: np.ndarray, tolerance: float, reach: float, explain: float | None = None,
                          beyond: float = 0.0, min_cos: float = 0.9, neighbours: int = 16,
-                         max_points: int | None = 1000) -> tuple[int, int]:
+                         max_points: int | None = 1000, support: np.ndarray | None = None) -> tuple[int, int]:
     """How far the frame's surfaces run on past a pose's model: (explained, continued) frame point counts.
 
     cloud: (M,3) the frame's points, camera metres; model_points (P,3) model frame metres and model_normals (P,3)
@@ -153,6 +153,10 @@ def surface_continuation(cloud: np.ndarray, model_points: np.ndarray, model_norm
     3 counted points nothing is continued: no surface to take a normal of): the surface goes on where the model's
     ends. A real object's faces end at its outline (the frame beyond is further, nearer, or a surface at an angle:
     the table under it); a pose on part of a larger thing has the thing's surfaces continue in its faces' planes.
+    support: (M,) bool, the frame points of the surface the objects stand on (the frame's dominant plane), which are
+    not continued: a curved face meets the table in its tangent plane, and the table is not a larger thing the
+    object is part of; unless half or more of the explained points are the table's (a pose lying in the table
+    itself, which only the table explains; None: every point may be continued).
     """
     cloud = np.asarray(cloud, np.float64).reshape(-1, 3)
     X = np.asarray(model_points, np.float64) @ np.asarray(R, np.float64).T + np.asarray(t, np.float64)
@@ -172,6 +176,10 @@ def surface_continuation(cloud: np.ndarray, model_points: np.ndarray, model_norm
     c, d, j = cloud[near[ok]], d[ok], j[ok]
     explained = d <= max(tolerance, explain or 0.0)
     in_plane = (d > beyond) & ~explained & (np.abs(np.einsum("ij,ij->i", c - X[j], N[j])) <= tolerance)
+    if support is not None:  # the table is not a larger thing, unless the pose lies in it (mostly explained by it)
+        on_support = np.asarray(support, bool)[near[ok]]
+        if (on_support[explained].mean() if explained.any() else 0.0) < 0.5:
+            in_plane &= ~on_support
     cand = np.flatnonzero(in_plane)
     if len(cand) == 0 or len(c) < 3:
         return int(explained.sum()), 0
@@ -184,7 +192,8 @@ def surface_continuation(cloud: np.ndarray, model_points: np.ndarray, model_norm
     return int(explained.sum()), int(parallel.sum())
 
 
-def continuation_checked(detections: list, cloud: np.ndarray, objects, cfg) -> list:
+def continuation_checked(detections: list, cloud: np.ndarray, objects, cfg, support: np.ndarray | None = None
+                         ) -> list:
     """Copies of ``detections`` whose scores fall where the frame's surfaces run on past their models
     (:func:`surface_continuation`): a detection with more than ``cfg.continuation_limit`` continued frame points per
     explained one has its score scaled by the square root of limit / that ratio (a softer fall than the ratio's
@@ -193,7 +202,9 @@ def continuation_checked(detections: list, cloud: np.ndarray, objects, cfg) -> l
     objects: the :class:`detector.geometry.types.ObjectInfo` (a detection of an object without surface normals,
     ``objects.surfaces``, keeps its score); cfg: the :class:`detector.geometry.types.GeometryConfig`
     (``continuation_tolerance`` metres, ``continuation_reach`` a fraction of the object's diameter). A frame point
-    within 1.5 sample spacings of the model's samples counts as explained, however sparse they are."""
+    within 1.5 sample spacings of the model's samples counts as explained, however sparse they are. support: (M,)
+    bool, the points of the surface the objects stand on, never continued (:func:`surface_continuation`; None:
+    none)."""
     if not any(d.obj_id in objects.surfaces for d in detections):
         return list(detections)
     cloud = np.asarray(cloud, np.float64)
@@ -206,7 +217,8 @@ def continuation_checked(detections: list, cloud: np.ndarray, objects, cfg) -> l
         spacing = objects.surface_spacing(d.obj_id)
         explained, continued = surface_continuation(cloud, points, normals, d.R, d.t, cfg.continuation_tolerance,
                                                     cfg.continuation_reach * objects.diameters[d.obj_id],
-                                                    explain=1.5 * spacing, beyond=cfg.continuation_gap)
+                                                    explain=1.5 * spacing, beyond=cfg.continuation_gap,
+                                                    support=support)
         ratio = continued / max(explained, 1)
         scale = min(1.0, float(np.sqrt(cfg.continuation_limit / ratio))) if ratio > 0 else 1.0
         out.append(replace(d, score=float(d.score * scale)) if scale < 1.0 else d)
