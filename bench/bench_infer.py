@@ -31,6 +31,7 @@ from __future__ import annotations
 import argparse
 import json
 import statistics
+import sys
 import tempfile
 import time
 from pathlib import Path
@@ -88,12 +89,15 @@ def two_stage_times(ck, frames: list, device: str, sets: list[str] | None = None
     (sampling, network, voting, stage 2, ICP, depth check, colour check with the model's own geometry settings, ``sets`` over
     them), detections per frame and stage 2's crops per frame (the stage-1 detections and their other-class copies
     it poses)."""
-    from detector.infer import checkpoint_geometry_config, checkpoint_objects, checkpoint_poser, estimate
+    from detector.infer import (checkpoint_geometry_config, checkpoint_objects, checkpoint_poser, estimate,
+                                missing_surfaces)
     from detector.report import STAGES
     from detector.stage1.predictor import network_predictor
 
     objects = checkpoint_objects(ck)[0]
     cfg = checkpoint_geometry_config(ck, None, True, sets=sets)
+    if (warning := missing_surfaces(cfg, objects, "the model")) is not None:
+        print(f"warning: {warning}", file=sys.stderr)
     pred, poser = network_predictor(ck, seed=0, device=device), checkpoint_poser(ck, objects, device, 0, infer_sets)
     runs, dets, crops = [], [], []
 

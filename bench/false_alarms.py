@@ -27,7 +27,7 @@ import torch
 from detector.checkpoint import load_checkpoint
 from detector.errors import DetectorError
 from detector.infer import (checkpoint_geometry_config, checkpoint_max_depth, checkpoint_objects, checkpoint_poser,
-                            split_sets)
+                            missing_surfaces, split_sets)
 from detector.predict import load_input, predict
 from detector.stage1.predictor import network_predictor
 
@@ -56,9 +56,8 @@ def main() -> None:
         poser = checkpoint_poser(ckpt, objects, "cpu", 0, infer_sets)
     except DetectorError as e:
         raise SystemExit(f"false_alarms.py: {e}") from None
-    if cfg.continuation_check and not objects.surfaces:
-        print(f"warning: {a.ckpt} carries no surface normals: the surface-continuation check checks nothing "
-              "(detector.checkpoint.add_surfaces adds them)", file=sys.stderr)
+    if (warning := missing_surfaces(cfg, objects, a.ckpt)) is not None:
+        print(f"warning: {warning}", file=sys.stderr)
     predictor = network_predictor(ckpt, 0)
     depth = checkpoint_max_depth(ckpt, a.max_depth)
     total = frames = 0

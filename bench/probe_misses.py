@@ -31,7 +31,8 @@ from detector.evaluation.metrics import pose_error
 from detector.geometry.icp import icp_from_start, icp_points, icp_starts
 from detector.geometry.types import Detection, GeometryConfig, ObjectInfo
 from detector.geometry.voting import detect
-from detector.infer import checkpoint_geometry_config, checkpoint_objects, checkpoint_poser, estimate, split_sets
+from detector.infer import (checkpoint_geometry_config, checkpoint_objects, checkpoint_poser, estimate,
+                            missing_surfaces, split_sets)
 from detector.stage1.predictor import network_predictor
 
 #: The causes, in the order a miss is tested for them.
@@ -124,6 +125,8 @@ def main() -> None:
                                                                           "geometry.min_score_unrefined=0.0"])
         LabelFile(a.labels).close()
         objects, _ = checkpoint_objects(ck)
+        if (warning := missing_surfaces(cfg, objects, a.model)) is not None:
+            print(f"warning: {warning}", file=sys.stderr)
         poser = checkpoint_poser(ck, objects, "cpu", a.seed, infer_sets)
     except (OSError, ValueError, KeyError, ArgenError, DetectorError) as exc:
         sys.exit(f"probe_misses: {exc}")

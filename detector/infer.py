@@ -119,6 +119,17 @@ def estimate(preds: Predictions, objects: ObjectInfo, cfg: GeometryConfig, timin
             [d for d in refined if d.score >= cfg.min_score] if refined is not None else None)
 
 
+def missing_surfaces(cfg: GeometryConfig, objects: ObjectInfo, model: str) -> str | None:
+    """The warning for a model whose objects carry no surface normals while the surface-continuation check is on
+    (``cfg.continuation_check``): nothing is checked. None where there is nothing to say. model: its name, for the
+    message."""
+    if not cfg.continuation_check or objects.surfaces:
+        return None
+    return (f"geometry.continuation_check is on, but {model} was trained without the objects' surface normals (label "
+            "files written before 2026-12-07): nothing is checked (README: detector.checkpoint.add_surfaces adds them "
+            "to the model file)")
+
+
 def colour_networks(ckpt) -> list[str]:
     """The stages of a model whose networks take colour input: "stage 1", "stage 2" ([] for networks that see
     geometry only). ckpt: a loaded checkpoint (:func:`detector.checkpoint.load_checkpoint`)."""

@@ -113,7 +113,7 @@ def register(app: typer.Typer) -> None:
         # lazy: torch and open3d load in seconds; `detector --help` and the other commands do not need them
         from detector.checkpoint import load_checkpoint
         from detector.infer import (checkpoint_geometry_config, checkpoint_max_depth, checkpoint_objects,
-                                    checkpoint_poser, colour_networks, colour_readers, split_sets)
+                                    checkpoint_poser, colour_networks, colour_readers, missing_surfaces, split_sets)
         from detector.predict import load_input, predict
         from detector.stage1.predictor import network_predictor
 
@@ -129,10 +129,8 @@ def register(app: typer.Typer) -> None:
                     "without it a printed object's way round is left unchecked")
             typer.echo(f"detector: warning: {checkpoint.name} reads colour ({', '.join(readers)}) and {input} has "
                        f"none (give the colour image with --rgb): {cost}", err=True)
-        if cfg.continuation_check and not objects.surfaces:
-            typer.echo(f"detector: warning: geometry.continuation_check is on, but {checkpoint.name} was trained "
-                       "without the objects' surface normals (label files written before 2026-12-07): nothing is "
-                       "checked (README: detector.checkpoint.add_surfaces adds them to the model file)", err=True)
+        if (warning := missing_surfaces(cfg, objects, checkpoint.name)) is not None:
+            typer.echo(f"detector: warning: {warning}", err=True)
         res = predict(network_predictor(ckpt, seed), inp, objects, out, cfg, names,
                       poser=checkpoint_poser(ckpt, objects, device, seed, infer_sets), max_depth=depth)
         for d in res["detections"]:
