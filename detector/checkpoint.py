@@ -14,6 +14,7 @@ import torch
 from argen.h5 import LabelFile
 from detector.data.frames import object_table_dict
 from detector.errors import DetectorError, argen_errors
+from detector.geometry.types import same_mesh
 from detector.stage1.network import ModelConfig, PointNet2
 from detector.stage1.sampling import SamplingConfig
 from detector.stage2.network import build_stage2_net
@@ -166,7 +167,7 @@ def add_surfaces(path: str | Path, label_path: str | Path, out: str | Path | Non
         if k >= len(table["surface_points"]) or not len(table["surface_points"][k]):
             raise DetectorError(f"{label_path} carries no surface normals of object {i} (label files written before "
                                 "2026-12-07 lack them: run argen label again)")
-        if abs(float(table["diameters"][k]) - float(dia)) > 1e-4 * max(float(dia), 1e-9):
+        if not same_mesh(dia, table["diameters"][k]):
             raise DetectorError(f"object {i}'s diameter is {float(table['diameters'][k]):.4f} m in {label_path} and "
                                 f"{float(dia):.4f} m in {path}: not the same mesh")
         points.append(table["surface_points"][k])

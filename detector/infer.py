@@ -103,16 +103,19 @@ def estimate(preds: Predictions, objects: ObjectInfo, cfg: GeometryConfig, timin
     if frame is not None and cfg.depth_check and timings is not None:
         timings["depth_check"] = timings.get("depth_check", 0.0) + t_check
     # the poses that would be kept, where the objects carry surface normals; the unrefined ones where they count
-    if cfg.continuation_check and cloud is not None and objects.surfaces:
+    check = [d for d in dets if d.score >= lo] if refined is None or check_unrefined else []
+    check_refined = [d for d in refined if d.score >= cfg.min_score] if refined is not None else []
+    if (cfg.continuation_check and cloud is not None and
+            any(d.obj_id in objects.surfaces for d in check + check_refined)):
         t0 = time.perf_counter()
+        xyz = np.asarray(cloud, np.float64)  # once: the plane and every pose's check read it
         # the surface the objects stand on: its points are not continued (a curved face meets it in its tangent
         # plane) unless a pose lies in it; the same draw every call, so a frame's poses are checked alike
-        support = dominant_plane(np.asarray(cloud, np.float64), np.random.default_rng(0))
+        support = dominant_plane(xyz, np.random.default_rng(0))
         if refined is None or check_unrefined:
-            dets = continuation_checked([d for d in dets if d.score >= lo], cloud, objects, cfg, support)
+            dets = continuation_checked(check, xyz, objects, cfg, support)
         if refined is not None:
-            refined = continuation_checked([d for d in refined if d.score >= cfg.min_score], cloud, objects, cfg,
-                                           support)
+            refined = continuation_checked(check_refined, xyz, objects, cfg, support)
         if timings is not None:
             timings["continuation_check"] = timings.get("continuation_check", 0.0) + time.perf_counter() - t0
     return ([d for d in dets if d.score >= lo],

@@ -196,6 +196,13 @@ def half_turns(model_points: np.ndarray) -> np.ndarray:
     return out
 
 
+def same_mesh(diameter: float, other: float) -> bool:
+    """Whether two object tables' entries under one id are of the same mesh, by their diameters (metres): equal to
+    1e-4 of ``diameter``. Surface samples are taken from one table into another only then
+    (:meth:`ObjectInfo.take_surfaces`, :func:`detector.checkpoint.add_surfaces`)."""
+    return abs(float(other) - float(diameter)) <= 1e-4 * max(float(diameter), 1e-9)
+
+
 @dataclass
 class ObjectInfo:
     """What the geometry needs of each object, by obj_id.
@@ -263,10 +270,10 @@ class ObjectInfo:
 
     def take_surfaces(self, other: "ObjectInfo") -> list[int]:
         """Copy into ``surfaces`` the surface samples and normals of ``other`` (e.g. a label file's objects) for the
-        objects this one has without them, where the diameters agree to 1e-4 of them (the same mesh under the same
-        id); returns the ids taken, ascending. For a model trained before its table carried the normals."""
+        objects this one has without them, where the diameters say they are the same mesh (:func:`same_mesh`);
+        returns the ids taken, ascending. For a model trained before its table carried the normals."""
         taken = [k for k in sorted(other.surfaces) if k in self.diameters and k not in self.surfaces
-                 and abs(other.diameters.get(k, -1.0) - self.diameters[k]) <= 1e-4 * max(self.diameters[k], 1e-9)]
+                 and k in other.diameters and same_mesh(self.diameters[k], other.diameters[k])]
         self.surfaces.update({k: other.surfaces[k] for k in taken})
         return taken
 
