@@ -55,7 +55,8 @@ eval_run() {
   local r=$1 data=$2 rep=$3
   sets_of "$4"
   shift 4
-  { grep -qs '"fps": "' "$rep/report.json" && grep -qs '"continuation_check"' "$rep/report.json"; } || $D eval "$r/model.pt" "$data" --out "$rep" --icp --quiet "${SETS[@]}" "$@"
+  { grep -qs '"fps": "' "$rep/report.json" && grep -qs '"continuation_check"' "$rep/report.json"; } ||
+    $D eval "$r/model.pt" "$data" --out "$rep" --icp --quiet "${SETS[@]}" "$@"
 }
 # eval_captures RUN [SUFFIX EVAL OPTIONS...]: RUN/model.pt with ICP on both test and both validation captures, into
 # reports/NAME-CAPTURE (NAME: RUN's folder name, then SUFFIX), each report once (steps 7-9)
@@ -111,9 +112,9 @@ for s in lm_train lm_test lm_val lchf_test lm_val2 lchf_val; do
   [ -f "$OUT/$s.h5" ] || $A label "$OUT/$s" --out "$OUT/$s.h5" --quiet
 done
 
-# 3. the shipped two-stage model (checkpoints/lm8.pt is runs/lm8/model.pt, run from nothing): stage 1 (objects and their centres;
-#    colour over its frame mean, `grey_world`; seed 1) and stage 2 (pose in crops; 24000 steps, keeping its weights
-#    every 3000 steps) trained side by side, `detector train`'s default on a CPU (about 57 minutes on 2 cores).
+# 3. the shipped two-stage model (checkpoints/lm8.pt is runs/lm8/model.pt, run from nothing): stage 1 (objects and
+#    their centres; colour over its frame mean, `grey_world`; seed 1) and stage 2 (pose in crops; 24000 steps,
+#    keeping its weights every 3000 steps) trained side by side, `detector train`'s default on a CPU (about 57 minutes on 2 cores).
 #    Stage 1's seed was chosen among 0-2 on the validation captures and the real frames without LineMOD objects
 #    (step 9; RESULTS.md)
 if [ -f runs/lm8/two_stage.yaml ] && ! grep -q "seed: 1" runs/lm8/two_stage.yaml; then

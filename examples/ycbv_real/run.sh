@@ -60,7 +60,10 @@ step capture_stage1 $A "${CAPTURE[@]}" --out "$OUT/ycbv_stage1" --set clutter.co
 [ -f "$OUT/ycbv_stage1.h5" ] || step label_stage1 $A label "$OUT/ycbv_stage1" --out "$OUT/ycbv_stage1.h5" \
   --max-depth 1.5 --quiet
 #    (a label file written before 2026-12-07 lacks the objects' surface normals that step 6i's check needs: made again)
-surfaces() { .venv/bin/python -c "import sys, h5py; sys.exit('surface_points' not in h5py.File(sys.argv[1], 'r')['objects'])" "$1" 2>/dev/null; }
+surfaces() {
+  .venv/bin/python -c "import sys, h5py; sys.exit('surface_points' not in h5py.File(sys.argv[1], 'r')['objects'])" \
+    "$1" 2>/dev/null
+}
 surfaces "$OUT/ycbv_real.h5" || $A label "$REAL" --split test --out "$OUT/ycbv_real.h5" --max-depth 1.5 --quiet
 # 3. the two-stage detector: stage 1 without colour (geometry only: it finds more on the real frames, RESULTS.md)
 #    on the capture without distractors, seeing a tenth of the frame's dominant plane (the desk: more of its 4096
