@@ -7,7 +7,9 @@
 #
 #   bash examples/ycbv_real/run.sh          # from the repository root, after `make install`
 #
-# Every step resumes when run again. The real frames are only evaluated on: never trained on.
+# Every step resumes when run again. The real frames are only evaluated on: never trained on. Steps 1-4 make and score
+# the model (about 40 minutes on 2 cores); steps 5-7 are RESULTS.md's studies (further trainings and 8-seed
+# evaluations, hours): MODEL_ONLY=1 stops after step 4.
 set -euo pipefail
 cd "$(dirname "$0")/../.."
 A=.venv/bin/argen
@@ -90,6 +92,7 @@ fi
 #    misses were lost
 $D eval "$RUN/model.pt" "$OUT/ycbv_real.h5" --out "$REP" --icp --min-visib 0 --quiet
 .venv/bin/python bench/probe_misses.py "$RUN/model.pt" "$OUT/ycbv_real.h5" "$REP/report.json" --min-visib 0
+[ -z "${MODEL_ONLY:-}" ] || exit 0
 # 5. training length: each kept stage-2 snapshot with the run's stage 1, on the real frames
 [ -f "$REP/curve.json" ] || .venv/bin/python examples/linemod/curve.py "$RUN" "$OUT/ycbv_real.h5" --out "$REP/curve.png" --min-visib 0
 # 6. what inference bought (RESULTS.md): the same model without the colour check, the depth check and the other
