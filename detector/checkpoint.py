@@ -176,3 +176,34 @@ def add_surfaces(path: str | Path, label_path: str | Path, out: str | Path | Non
     target = Path(out) if out is not None else Path(path)
     atomic_torch_save(payload, target)
     return target
+
+
+def combine_stages(stage1_model: str | Path, stage2_model: str | Path, out: str | Path,
+                   settings_from: str = "stage2") -> Path:
+    """Write a two-stage model file with the stage 1 of one model file and the stage 2 of another (e.g. to measure
+    what each stage of a recipe does, RESULTS.md). Both must be two-stage model files of the same objects, in the
+    same class order, with the same diameters (the same meshes). The inference settings (``geometry``,
+    ``sampling``; stage 2's own ``infer``) are taken from ``settings_from``'s file ("stage1" or "stage2");
+    stage 1's object table goes with stage 1, as in every model file. out: the file written (atomically)."""
+    if settings_from not in ("stage1", "stage2"):
+        raise DetectorError(f"settings_from must be stage1 or stage2, got {settings_from!r}")
+    parts = []
+    for path in (stage1_model, stage2_model):
+        payload = read_checkpoint(path)
+        if payload.get("version") != TWO_STAGE_VERSION or "stage1" not in payload or "stage2" not in payload:
+            raise DetectorError(f"{path} is not a two-stage model file (model.pt that `detector train` writes)")
+        parts.append(payload)
+    first, second = parts
+    ids1, ids2 = list(first["stage1"]["class_ids"]), list(second["stage2"]["class_ids"])
+    if ids1 != ids2:
+        raise DetectorError(f"{stage1_model}'s stage 1 learned objects {ids1}, {stage2_model}'s stage 2 {ids2}")
+    table1, table2 = first["stage1"]["objects"], second["stage1"]["objects"]
+    for i, a, b in zip(table1["ids"], table1["diameters"], table2["diameters"]):
+        if not same_mesh(a, b):
+            raise DetectorError(f"object {i}'s diameter is {float(a):.4f} m in {stage1_model} and {float(b):.4f} m "
+                                f"in {stage2_model}: not the same mesh")
+    extra = (first if settings_from == "stage1" else second).get("extra") or {}
+    stage2 = dict(second["stage2"])
+    if settings_from == "stage1":
+        stage2["infer_config"] = first["stage2"].get("infer_config", stage2.get("infer_config"))
+    return save_two_stage(out, first["stage1"], stage2, extra)

@@ -88,3 +88,36 @@ def test_stage_dirs(tmp_path):
     assert stage_dirs(tmp_path) == (tmp_path / "detect", tmp_path / "pose")  # a run from before the names changed
     (tmp_path / "stage1").mkdir()
     assert stage_dirs(tmp_path) == (tmp_path / "stage1", tmp_path / "stage2")
+
+
+def test_combine_stages_takes_each_stage_and_the_chosen_settings_from_its_file(tmp_path):
+    """combine_stages: stage 1's weights and object table from the first file, stage 2's from the second, the
+    inference settings from the one named; files of other objects, or not two-stage model files, are refused."""
+    from detector.checkpoint import combine_stages
+
+    src = read_checkpoint(CHECKPOINTS / "ycbv3.pt")
+    other = read_checkpoint(CHECKPOINTS / "ycbv3.pt")  # the same objects, another stage 2 and other settings
+    other["stage2"]["model_state"] = {k: v + 1.0 if v.is_floating_point() else v
+                                      for k, v in other["stage2"]["model_state"].items()}
+    other["stage2"]["infer_config"] = {**other["stage2"].get("infer_config", {}), "verify": 8}
+    other["extra"]["geometry_config"] = {**other["extra"]["geometry_config"], "min_score": 0.5}
+    torch.save(other, tmp_path / "other.pt")
+    out = combine_stages(CHECKPOINTS / "ycbv3.pt", tmp_path / "other.pt", tmp_path / "mixed.pt")
+    mixed = read_checkpoint(out)
+    for k, v in src["stage1"]["model_state"].items():
+        assert torch.equal(mixed["stage1"]["model_state"][k], v)
+    for k, v in other["stage2"]["model_state"].items():
+        assert torch.equal(mixed["stage2"]["model_state"][k], v)
+    assert mixed["extra"]["geometry_config"]["min_score"] == 0.5 and mixed["stage2"]["infer_config"]["verify"] == 8
+    assert load_checkpoint(out).stage2_net is not None  # a model file eval and predict take
+    kept = read_checkpoint(combine_stages(CHECKPOINTS / "ycbv3.pt", tmp_path / "other.pt", tmp_path / "kept.pt",
+                                          settings_from="stage1"))
+    assert kept["extra"] == src["extra"] and kept["stage2"]["infer_config"] == src["stage2"].get("infer_config")
+    with pytest.raises(DetectorError, match="learned objects"):
+        combine_stages(CHECKPOINTS / "ycbv3.pt", CHECKPOINTS / "lm8.pt", tmp_path / "no.pt")
+    torch.save({"format": FORMAT, "version": TWO_STAGE_VERSION, "stage2": {"step": 3}}, tmp_path / "last.pt")
+    with pytest.raises(DetectorError, match="not a two-stage model file"):
+        combine_stages(tmp_path / "last.pt", CHECKPOINTS / "ycbv3.pt", tmp_path / "no.pt")
+    with pytest.raises(DetectorError, match="settings_from"):
+        combine_stages(CHECKPOINTS / "ycbv3.pt", CHECKPOINTS / "ycbv3.pt", tmp_path / "no.pt", settings_from="both")
+    assert not (tmp_path / "no.pt").exists()

@@ -289,4 +289,43 @@ if [ "${CONTINUATION:-0}" = 1 ]; then
   [ -f "$REP/simtest_no_continuation/report.json" ] || $D eval "$RUN/model.pt" "$OUT/ycbv_simtest.h5" \
     --out "$REP/simtest_no_continuation" --icp --quiet --set geometry.continuation_check=false
 fi
+# 6j. the default recipe (`detector train`'s, checkpoints/lm8.pt's) on these objects, stage by stage (RESULTS.md,
+#     "The default recipe on these frames"; DEFAULT_RECIPE=1): both stages of the default (stage 1 with `grey_world`
+#     colour on the capture with distractors and every point of the plane, stage 2 with `light` colour; 4000 stage-2
+#     steps, as the run's), stage 1 again with `grey_world` colour on the capture without distractors (with the
+#     plane, G1, and with a tenth of it, G2, each beside the default's stage 2), and each stage 1 paired with each
+#     stage 2 (detector.checkpoint.combine_stages, with the run's inference settings); seeds 0-7 on the real frames
+if [ "${DEFAULT_RECIPE:-0}" = 1 ]; then
+  X=$RUN.default_recipe
+  resume=(); [ -f "$X/two_stage.yaml" ] && resume=(--resume)
+  [ -f "$X/model.pt" ] || $D train "$OUT/ycbv_train.h5" --out "$X" --set stage2.steps=4000 \
+    --set stage2.keep_every=2000 "${resume[@]}" --quiet
+  for g in G1:1 G2:0.1; do
+    r=$RUN.default_${g%%:*}
+    if [ ! -f "$r/model.pt" ]; then
+      [ -d "$r/stage2" ] || { mkdir -p "$r" && cp -r "$X/stage2" "$r/"; }
+      sed "s/^stage1: {}/stage1:\n  plane_keep: ${g#*:}/" "$X/two_stage.yaml" > "$r/two_stage.yaml"
+      $D train "$OUT/ycbv_train.h5" --stage1-data "$OUT/ycbv_stage1.h5" --out "$r" --resume --quiet
+    fi
+  done
+  combine() {
+    .venv/bin/python -c "import sys; from detector.checkpoint import combine_stages as c; c(*sys.argv[1:])" "$@"
+  }
+  # NAME:STAGE 1'S FILE:STAGE 2'S FILE:THE FILE OF THE INFERENCE SETTINGS (stage1 or stage2; the run's in each pair)
+  for m in "default_s1:$X/model.pt:$RUN/model.pt:stage2" "default_s2:$RUN/model.pt:$X/model.pt:stage1" \
+           "G1:$RUN.default_G1/model.pt:$RUN/model.pt:stage2" "G2:$RUN.default_G2/model.pt:$RUN/model.pt:stage2"; do
+    IFS=: read -r name s1 s2 from <<< "$m"
+    [ -f "$REP/recipe_$name.pt" ] || combine "$s1" "$s2" "$REP/recipe_$name.pt" "$from"
+  done
+  for name in default default_s1 default_s2 G1 G2; do
+    model=$REP/recipe_$name.pt; [ $name = default ] && model=$X/model.pt
+    for seed in 0 1 2 3 4 5 6 7; do
+      [ -f "$REP/seeds_recipe/$name-$seed/report.json" ] || $D eval "$model" "$OUT/ycbv_real.h5" \
+        --out "$REP/seeds_recipe/$name-$seed" --icp --min-visib 0 --quiet --seed $seed
+    done
+  done
+  .venv/bin/python examples/ycbv_real/seeds.py "$REP/seeds_recipe"
+  [ -f "$REP/simtest_default_recipe/report.json" ] || $D eval "$X/model.pt" "$OUT/ycbv_simtest.h5" \
+    --out "$REP/simtest_default_recipe" --icp --quiet
+fi
 cat "$T"
