@@ -15,12 +15,15 @@ A=.venv/bin/argen
 D=.venv/bin/detector
 OUT=${OUT:-data/custom}
 RECIPE=${RECIPE:-real}
+S1=${STAGE1_STEPS:-2000}     # the budget: stage 1 (find the object, its centre) and stage 2 (pose in crops)
+# DATA: the train step's label files besides the training capture's; SETS: its settings besides the budget
 case $RECIPE in
-  real) RUNS=${RUNS:-runs/custom}; S2=${STAGE2_STEPS:-4000}; REP=$OUT/report ;;
-  default) RUNS=${RUNS:-runs/custom_default}; S2=${STAGE2_STEPS:-6000}; REP=$OUT/report_default ;;
+  real) RUNS=${RUNS:-runs/custom}; S2=${STAGE2_STEPS:-4000}; REP=$OUT/report
+        DATA=(--stage1-data "$OUT/stage1.h5")
+        SETS=(--set stage1.colour=none --set stage1.plane_keep=0.1 --set stage2.crop.colour=none) ;;
+  default) RUNS=${RUNS:-runs/custom_default}; S2=${STAGE2_STEPS:-6000}; REP=$OUT/report_default; DATA=(); SETS=() ;;
   *) echo "RECIPE must be real or default, got $RECIPE" >&2; exit 2 ;;
 esac
-S1=${STAGE1_STEPS:-2000}     # the budget: stage 1 (find the object, its centre) and stage 2 (pose in crops)
 mkdir -p "$OUT"
 T="$OUT/times.txt"
 step() { local name=$1; shift; local t0=$SECONDS; "$@"; echo "$name $((SECONDS - t0)) s" | tee -a "$T"; }
@@ -40,8 +43,8 @@ step capture_test $A capture-sim --scene linemod --models "$OUT/models" --object
   --workers 2 --out "$OUT/test" --quiet
 #    and the training capture again without distractors, for stage 1 alone: a stage 1 that learns among distractors
 #    finds far less of the objects in real frames (RESULTS.md, "The default recipe on these frames")
-[ $RECIPE = default ] || step capture_stage1 $A capture-sim --scene linemod --models "$OUT/models" --objects "$NAME" --frames 600 --seed 1 \
-  --workers 2 --out "$OUT/stage1" --quiet --set clutter.count=[0,0] --set clutter.on_board=[0,0]
+[ $RECIPE = default ] || step capture_stage1 $A capture-sim --scene linemod --models "$OUT/models" --objects "$NAME" \
+  --frames 600 --seed 1 --workers 2 --out "$OUT/stage1" --quiet --set clutter.count=[0,0] --set clutter.on_board=[0,0]
 
 # 3. per-point labels
 for s in train stage1 test; do
@@ -52,16 +55,10 @@ done
 #    on the capture without distractors and seeing a tenth of the desk plane, stage 2 among the distractors: the
 #    settings of examples/ycbv_real/run.sh, which were chosen on real frames (RESULTS.md)
 #    (RECIPE=default: `detector train`'s default settings, both stages on the training capture)
-if [ ! -f "$RUNS/model.pt" ] && [ $RECIPE = default ]; then
-  R=""; [ -f "$RUNS/two_stage.yaml" ] && R="--resume"
-  step train $D train "$OUT/train.h5" --out "$RUNS" --set stage1.steps=$S1 --set stage2.steps=$S2 $R --quiet
-elif [ ! -f "$RUNS/model.pt" ]; then
-  if [ -f "$RUNS/two_stage.yaml" ]; then
-    step train $D train "$OUT/train.h5" --stage1-data "$OUT/stage1.h5" --out "$RUNS" --resume --quiet
-  else
-    step train $D train "$OUT/train.h5" --stage1-data "$OUT/stage1.h5" --out "$RUNS" --set stage1.steps=$S1 \
-      --set stage2.steps=$S2 --set stage1.colour=none --set stage1.plane_keep=0.1 --set stage2.crop.colour=none --quiet
-  fi
+if [ ! -f "$RUNS/model.pt" ]; then  # a run begun before is resumed with the settings it started with
+  [ -f "$RUNS/two_stage.yaml" ] && SETS=(--resume)
+  step train $D train "$OUT/train.h5" "${DATA[@]}" --out "$RUNS" "${SETS[@]}" --set stage1.steps=$S1 \
+    --set stage2.steps=$S2 --quiet
 fi
 
 # 5. evaluate on the held-out capture (another seed), with ICP refinement
