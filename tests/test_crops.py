@@ -689,6 +689,42 @@ def tiny_two_stage_args(s1_steps: int = 2, s2_steps: int = 3) -> list[str]:
     return args
 
 
+def test_frames_of_several_label_files_follow_one_another(tmp_path):
+    """FrameSource over a list of label files: item i is frame i of the files taken in order (the same arrays as
+    the file's own frame), its generator that of item i; files of other objects or another working volume are
+    refused in one line."""
+    import h5py
+
+    from detector.data.frames import FrameSource
+    from test_data import write_synthetic_h5
+
+    a = write_synthetic_h5(tmp_path / "a.h5", num_frames=3, seed=1)
+    b = write_synthetic_h5(tmp_path / "b.h5", num_frames=2, seed=2)
+    both = FrameSource([a, b], seed=4)
+    assert len(both) == 5 and both.class_ids == FrameSource(a).class_ids
+    for i, (path, local) in enumerate([(a, 0), (a, 1), (a, 2), (b, 0), (b, 1)]):
+        frame, rng, index = both.read((3, i))
+        with LabelFile(path) as lf:
+            own = lf.frame(local)
+        assert index == i and np.array_equal(frame.features, own.features)
+        assert np.array_equal(frame.semantic, own.semantic) and np.array_equal(frame.instance, own.instance)
+        assert rng.integers(1 << 30) == np.random.default_rng([4, 3, i]).integers(1 << 30)
+    with pytest.raises(IndexError):
+        both.read(5)
+    both.close()
+    far = write_synthetic_h5(tmp_path / "far.h5", num_frames=1, seed=3)
+    with h5py.File(far, "r+") as f:
+        f.attrs["max_depth"] = 3.0
+    with pytest.raises(DetectorError, match="different working volumes"):
+        FrameSource([a, far])
+    other = write_synthetic_h5(tmp_path / "other.h5", num_frames=1, seed=3)
+    with h5py.File(other, "r+") as f:
+        d = f["objects/diameters"]
+        d[0] = 2 * d[0]
+    with pytest.raises(DetectorError, match="other objects than"):
+        FrameSource([a, other])
+
+
 def test_stage1_data_trains_stage1_on_its_own_file(labels, tmp_path):
     """--stage1-data: stage 1 learns from its own label file (here a capture without any distractors), stage 2
     from the training file; a file of other objects is refused in one line before anything trains, and the single
@@ -715,6 +751,13 @@ def test_stage1_data_trains_stage1_on_its_own_file(labels, tmp_path):
     assert r.exit_code == 0, r.output
     assert read_checkpoint(out / "stage1" / "last.pt")["extra"]["train_file"] == str(plain)
     assert read_checkpoint(out / "model.pt")["extra"]["train_file"] == str(labels)
+    # given twice, stage 1 takes both files' frames (4 + 4): one step of batch 4 is half an epoch of them
+    r = run.invoke(det_app, ["train", str(labels), "--out", str(tmp_path / "two"), "--stage1-data", str(plain),
+                             "--stage1-data", str(labels), *tiny_two_stage_args(1, 1), "--set", "stage1.batch_size=4"])
+    assert r.exit_code == 0, r.output
+    assert read_checkpoint(tmp_path / "two" / "stage1" / "last.pt")["extra"]["train_file"] == f"{plain} {labels}"
+    row = (tmp_path / "two" / "stage1" / "metrics.csv").read_text().splitlines()[1].split(",")
+    assert row[:2] == ["1", "0.5"]
     # the model poses the mug with the part symmetry stage 2 was taught under, from stage 2's file
     from detector.checkpoint import load_checkpoint
     from detector.infer import checkpoint_objects

@@ -46,9 +46,10 @@ def train_cmd(
     overwrite: bool = typer.Option(False, "--overwrite", help="replace an existing run folder"),
     sets: list[str] = typer.Option([], "--set", help="any config key, e.g. --set stage2.steps=3000 "
                                                                   "(two-stage) or --set loss.w_conf=2 (cpu/paper)"),
-    stage1_data: Optional[Path] = typer.Option(None, "--stage1-data", help="two-stage: a label file of the same "
-                                               "objects for stage 1 alone (default: the training file), e.g. a "
-                                               "capture without distractors"),
+    stage1_data: list[Path] = typer.Option([], "--stage1-data", help="two-stage: a label file of the same "
+                                           "objects for stage 1 alone (default: the training file), e.g. a capture "
+                                           "without distractors; give it twice or more to train stage 1 on the "
+                                           "files' frames together"),
     quiet: bool = typer.Option(False, "--quiet", help="no progress bar"),
 ):
     """Train a detector on a label file; checkpoints and metrics go to --out.
@@ -74,7 +75,7 @@ def train_cmd(
                           "seg_pretrain_steps": seg_pretrain_steps},
                          {"device": device, "seed": seed, "num_workers": workers})
         return
-    if stage1_data is not None:
+    if stage1_data:
         raise DetectorError("--stage1-data is for the two-stage model (the default), not --preset cpu or paper")
     if steps is not None and epochs is not None:
         raise DetectorError("give --steps or --epochs, not both")
@@ -111,7 +112,7 @@ def train_cmd(
 
 
 def _train_two_stage(train_file: Path, out: Path, val: Optional[Path], config: Optional[Path], sets: list[str],
-                     resume: bool, overwrite: bool, quiet: bool, stage1_data: Optional[Path], network_flags: dict,
+                     resume: bool, overwrite: bool, quiet: bool, stage1_data: list[Path], network_flags: dict,
                      shared_flags: dict) -> None:
     """``detector train`` for the two-stage model (see :mod:`detector.two_stage`). network_flags: options of one
     network (refused: the stages differ); shared_flags: options that both stages take (set on both)."""
@@ -133,5 +134,5 @@ def _train_two_stage(train_file: Path, out: Path, val: Optional[Path], config: O
     cfg = load_two_stage_config(config, overrides)
     prepare_run_folder(out, resume, overwrite)
     path = train_two_stage(cfg, train_file, out, resume=resume, progress=not quiet, val_path=val,
-                           stage1_path=stage1_data)
+                           stage1_path=stage1_data or None)
     typer.echo(f"{out}: two-stage model -> {path}")

@@ -42,29 +42,47 @@ def check_frame(frame, path: Path, i: int) -> None:
 
 
 class FrameSource(torch.utils.data.Dataset):
-    """A label file's frames for a Dataset: opened lazily in each process (never pickled into workers), the
-    object table, the classes to learn (``class_ids``, sorted object ids), the working volume its points were taken
-    from (``max_depth``: metres along z, None when the file does not say) and the per-item generator."""
+    """The frames of one label file, or of several label files of the same objects one after the other (``path`` a
+    list: e.g. a capture without distractors and one among them for stage 1), for a Dataset: opened lazily in each
+    process (never pickled into workers), the object table, the classes to learn (``class_ids``, sorted object ids),
+    the working volume its points were taken from (``max_depth``: metres along z, None when the files do not say)
+    and the per-item generator. Item ``i`` is frame ``i`` of the files taken in order; its generator depends on
+    ``i``, so a file's frames draw other samples in another position of the list."""
 
-    def __init__(self, path: str | Path, seed: int = 0, class_ids: Sequence[int] | None = None,
-                 augment: bool = False):
-        self.path = Path(path)
+    def __init__(self, path: str | Path | Sequence[str | Path], seed: int = 0,
+                 class_ids: Sequence[int] | None = None, augment: bool = False):
+        self.paths = [Path(p) for p in ([path] if isinstance(path, (str, Path)) else path)]
+        if not self.paths:
+            raise DetectorError("no label file given")
+        self.path = self.paths[0]
         self.seed = int(seed)
         self.augment = bool(augment)
-        self._file = None
-        self._pid = None
-        lf = open_label_file(self.path)
-        try:
-            with argen_errors():
-                self.num_frames = int(lf.num_frames)
-                self.objects = object_table_dict(lf.objects)
-                depth = lf.attrs.get("max_depth")
-                self.max_depth = float(depth) if depth is not None and float(depth) > 0 else None
-                if self.num_frames == 0:
-                    raise DetectorError(f"{self.path}: the label file has no frames")
-                check_frame(lf.frame(0), self.path, 0)  # one frame checks the shared datasets' shapes and dtypes
-        finally:
-            lf.close()
+        self._files, self._pid = None, None
+        counts, depths = [], []
+        for p in self.paths:
+            lf = open_label_file(p)
+            try:
+                with argen_errors():
+                    counts.append(int(lf.num_frames))
+                    objects = object_table_dict(lf.objects)
+                    depth = lf.attrs.get("max_depth")
+                    depths.append(float(depth) if depth is not None and float(depth) > 0 else None)
+                    if counts[-1] == 0:
+                        raise DetectorError(f"{p}: the label file has no frames")
+                    check_frame(lf.frame(0), p, 0)  # one frame checks the shared datasets' shapes and dtypes
+            finally:
+                lf.close()
+            if p is self.paths[0]:
+                self.objects = objects
+            else:
+                _check_same_table(self.objects, objects, self.paths[0], p)
+        if len(set(depths)) > 1:
+            raise DetectorError(f"the label files were labelled with different working volumes (--max-depth "
+                                f"{', '.join(map(str, depths))} m for {', '.join(map(str, self.paths))}): label "
+                                "them with one")
+        self.max_depth = depths[0]
+        self.starts = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)  # (F+1,) first item of each file
+        self.num_frames = int(self.starts[-1])
         ids = sorted(int(i) for i in (self.objects["ids"] if class_ids is None else class_ids))
         if not ids:
             raise DetectorError(f"{self.path}: no object classes to train on")
@@ -75,35 +93,52 @@ class FrameSource(torch.utils.data.Dataset):
 
     def __getstate__(self) -> dict:
         state = dict(self.__dict__)
-        state["_file"], state["_pid"] = None, None
+        state["_files"], state["_pid"] = None, None
         return state
 
-    def _label_file(self):
-        if self._file is None or self._pid != os.getpid():
-            self._file = open_label_file(self.path)
+    def _label_file(self, k: int = 0):
+        if self._files is None or self._pid != os.getpid():
+            self._files = [None] * len(self.paths)
             self._pid = os.getpid()
-        return self._file
+        if self._files[k] is None:
+            self._files[k] = open_label_file(self.paths[k])
+        return self._files[k]
 
     def close(self) -> None:
-        """Close this process's handle on the label file (reopened on the next item)."""
-        if self._file is not None and self._pid == os.getpid():
-            self._file.close()
-        self._file, self._pid = None, None
+        """Close this process's handles on the label files (reopened on the next item)."""
+        if self._files is not None and self._pid == os.getpid():
+            for f in self._files:
+                if f is not None:
+                    f.close()
+        self._files, self._pid = None, None
 
     def rng(self, epoch: int, index: int) -> np.random.Generator:
-        """The generator of one item, from (seed, epoch, frame index)."""
+        """The generator of one item, from (seed, epoch, item index)."""
         return np.random.default_rng([self.seed, int(epoch), int(index)])
 
     def read(self, key: int | tuple[int, int]):
-        """(frame labels, generator, frame index) of item ``key`` = index or (epoch, index); checked."""
+        """(frame labels, generator, item index) of item ``key`` = index or (epoch, index); checked."""
         epoch, index = key if isinstance(key, tuple) else (0, key)
         index = int(index)
         if not 0 <= index < self.num_frames:
             raise IndexError(f"frame {index} out of range (0..{self.num_frames - 1})")
+        k = int(np.searchsorted(self.starts, index, side="right")) - 1
+        local = index - int(self.starts[k])
         with argen_errors():
-            frame = self._label_file().frame(index)
-        check_frame(frame, self.path, index)
+            frame = self._label_file(k).frame(local)
+        check_frame(frame, self.paths[k], local)
         return frame, self.rng(epoch, index), index
+
+
+def _check_same_table(a: dict, b: dict, path_a: Path, path_b: Path) -> None:
+    """Raise a one-line DetectorError unless two label files' object tables (:func:`object_table_dict`) hold the
+    same objects: ids, names, diameters and box control points."""
+    same = (a["ids"] == b["ids"] and a["names"] == b["names"]
+            and np.allclose(a["diameters"], b["diameters"], atol=1e-6)
+            and np.allclose(a["control_points"], b["control_points"], atol=1e-6))
+    if not same:
+        raise DetectorError(f"{path_b} holds other objects than {path_a} ({b['names']} against {a['names']}): "
+                            "label files trained on together must be labelled with the same models")
 
 
 def object_table_dict(objects) -> dict:

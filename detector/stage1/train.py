@@ -24,7 +24,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -261,10 +261,12 @@ def validation_metrics(model: torch.nn.Module, dataset: PointDataset, cfg: Train
     return out
 
 
-def train(cfg: TrainConfig, train_path: str | Path, out_dir: str | Path, val_path: str | Path | None = None,
+def train(cfg: TrainConfig, train_path: str | Path | Sequence[str | Path], out_dir: str | Path,
+          val_path: str | Path | None = None,
           resume: bool = False, progress: bool = True, stop_after: int | None = None,
           before_step: Callable[[int], None] | None = None) -> TrainSummary:
-    """Train a PointNet2 on a label file; write checkpoints and metrics to ``out_dir``; return a summary.
+    """Train a PointNet2 on a label file (or on several of the same objects together: ``train_path`` a list); write
+    checkpoints and metrics to ``out_dir``; return a summary.
 
     ``stop_after``: end after this step as if interrupted there (``last.pt`` is written; ``resume=True``
     continues the same schedule), e.g. to train in time-boxed pieces. ``before_step``: called with each step's
@@ -278,7 +280,8 @@ def train(cfg: TrainConfig, train_path: str | Path, out_dir: str | Path, val_pat
         distributed.teardown(ctx)
 
 
-def _train(cfg: TrainConfig, train_path: str | Path, out_dir: str | Path, val_path: str | Path | None, resume: bool,
+def _train(cfg: TrainConfig, train_path: str | Path | Sequence[str | Path], out_dir: str | Path,
+           val_path: str | Path | None, resume: bool,
            progress: bool, stop_after: int | None, ctx: DistContext,
            before_step: Callable[[int], None] | None = None) -> TrainSummary:
 
@@ -293,6 +296,7 @@ def _train(cfg: TrainConfig, train_path: str | Path, out_dir: str | Path, val_pa
     model_cfg = build_model_config(cfg)
     ds = PointDataset(train_path, model_cfg, cfg.num_points, augment=cfg.augment, seed=cfg.seed, colour=cfg.colour,
                       class_ids=cfg.class_ids, precompute=use_indices, plane_keep=cfg.plane_keep)
+    ds_paths = " ".join(map(str, ds.paths))  # the label file(s), as the checkpoint records them
     val_ds = None
     if val_path is not None and ctx.is_main:
         val_ds = PointDataset(val_path, model_cfg, cfg.num_points, augment=False, seed=cfg.seed,
@@ -326,7 +330,7 @@ def _train(cfg: TrainConfig, train_path: str | Path, out_dir: str | Path, val_pa
             log = MetricsLog(out_dir / "metrics.csv", keep_until=start if resume else None, fields=METRIC_FIELDS)
 
         def save(path: Path, step: int) -> None:
-            extra = {"train_config": config_to_dict(cfg), "train_file": str(train_path), "val": val,
+            extra = {"train_config": config_to_dict(cfg), "train_file": ds_paths, "val": val,
                      "max_depth": ds.max_depth}  # the working volume of its points: predict keeps to it
             train_state = {"optimizer": opt.state_dict(), "scheduler": sched.state_dict(), "rng": rng_state(device),
                            "data_position": step * cfg.batch_size, "config": config_to_dict(cfg),
