@@ -308,16 +308,33 @@ if [ "${DEFAULT_RECIPE:-0}" = 1 ]; then
       $D train "$OUT/ycbv_train.h5" --stage1-data "$OUT/ycbv_stage1.h5" --out "$r" --resume --quiet
     fi
   done
+  #   the default's stage 1 on both captures together (MIX: half its frames with distractors) and on a third capture
+  #   with the distractors around the board but none on it (OFF); OFF's capture under M's stage-1 settings (OFFG)
+  [ -d "$OUT/ycbv_offboard" ] || $A "${CAPTURE[@]}" --out "$OUT/ycbv_offboard" --set clutter.on_board=[0,0]
+  [ -f "$OUT/ycbv_offboard.h5" ] || $A label "$OUT/ycbv_offboard" --out "$OUT/ycbv_offboard.h5" --max-depth 1.5 --quiet
+  for g in "MIX:$X:$OUT/ycbv_stage1.h5 $OUT/ycbv_train.h5" "OFF:$X:$OUT/ycbv_offboard.h5" \
+           "OFFG:$RUN:$OUT/ycbv_offboard.h5"; do
+    IFS=: read -r name from files <<< "$g"
+    r=$RUN.default_$name
+    if [ ! -f "$r/model.pt" ]; then
+      [ -d "$r/stage2" ] || { mkdir -p "$r" && cp -r "$from/stage2" "$r/"; }
+      cp "$from/two_stage.yaml" "$r/"
+      s1=(); for f in $files; do s1+=(--stage1-data "$f"); done
+      $D train "$OUT/ycbv_train.h5" "${s1[@]}" --out "$r" --resume --quiet
+    fi
+  done
   combine() {
     .venv/bin/python -c "import sys; from detector.checkpoint import combine_stages as c; c(*sys.argv[1:])" "$@"
   }
   # NAME:STAGE 1'S FILE:STAGE 2'S FILE:THE FILE OF THE INFERENCE SETTINGS (stage1 or stage2; the run's in each pair)
   for m in "default_s1:$X/model.pt:$RUN/model.pt:stage2" "default_s2:$RUN/model.pt:$X/model.pt:stage1" \
-           "G1:$RUN.default_G1/model.pt:$RUN/model.pt:stage2" "G2:$RUN.default_G2/model.pt:$RUN/model.pt:stage2"; do
+           "G1:$RUN.default_G1/model.pt:$RUN/model.pt:stage2" "G2:$RUN.default_G2/model.pt:$RUN/model.pt:stage2" \
+           "MIX:$RUN.default_MIX/model.pt:$RUN/model.pt:stage2" "OFF:$RUN.default_OFF/model.pt:$RUN/model.pt:stage2" \
+           "OFFG:$RUN.default_OFFG/model.pt:$RUN/model.pt:stage2"; do
     IFS=: read -r name s1 s2 from <<< "$m"
     [ -f "$REP/recipe_$name.pt" ] || combine "$s1" "$s2" "$REP/recipe_$name.pt" "$from"
   done
-  for name in default default_s1 default_s2 G1 G2; do
+  for name in default default_s1 default_s2 G1 G2 MIX OFF OFFG; do
     model=$REP/recipe_$name.pt; [ $name = default ] && model=$X/model.pt
     for seed in 0 1 2 3 4 5 6 7; do
       [ -f "$REP/seeds_recipe/$name-$seed/report.json" ] || $D eval "$model" "$OUT/ycbv_real.h5" \
