@@ -458,19 +458,21 @@ if [ "${CONTINUATION:-0}" = 1 ]; then
       --set geometry.continuation_check=false
   done
 fi
-# 13. stage 1 learning from a capture without distractors (RESULTS.md, "Stage 1 from a capture without distractors";
+# 13. stage 1 learning from a capture without distractors (RESULTS.md, "Stage 1 without distractors on the board";
 #     the ycbv section's "The default recipe on these frames" found it the larger part of what the real frames
 #     need): the training capture made again without distractors (`clutter.count=[0,0]`, `clutter.on_board=[0,0]`),
 #     and stage 1 alone trained on it beside lm8.pt's stage 2 (runs/lm8's, copied): with `grey_world` colour as
 #     lm8.pt's (lm8_clean) and on geometry only seeing a tenth of the plane as ycbv3.pt's (lm8_clean_geometry), each
-#     with lm8.pt's seed 1 and one thread (as side by side); sampling seed 0 on both test captures, and the real
+#     with lm8.pt's seed 1 and one thread (as side by side), and step 3b's stage 1 with seed 2 on the capture without
+#     distractors on the board (lm8_offboard_seed2); sampling seed 0 on both test captures, and the real
 #     frames without LineMOD objects. Only with STAGE1_CLEAN=1
 if [ "${STAGE1_CLEAN:-0}" = 1 ]; then
   [ -d "$OUT/lm_stage1" ] || $A capture-sim --scene linemod --models "$M" --frames 2000 --seed 1 --workers 2 \
     --out "$OUT/lm_stage1" --quiet --set clutter.count=[0,0] --set clutter.on_board=[0,0]
   [ -f "$OUT/lm_stage1.h5" ] || $A label "$OUT/lm_stage1" --out "$OUT/lm_stage1.h5" --quiet
-  #   (the row without distractors on the board is step 3b's model)
-  for v in "lm8_clean:lm_stage1:{}" "lm8_clean_geometry:lm_stage1:{colour: none, plane_keep: 0.1}"; do
+  #   (the row without distractors on the board is step 3b's model; its stage-1 seed 2: lm8_offboard_seed2)
+  for v in "lm8_clean:lm_stage1:{}" "lm8_clean_geometry:lm_stage1:{colour: none, plane_keep: 0.1}" \
+           "lm8_offboard_seed2:lm_offboard:{seed: 2}"; do
     IFS=: read -r name data sets <<< "$v"
     r=runs/$name
     if [ ! -f "$r/model.pt" ]; then
