@@ -128,9 +128,9 @@ def train_two_stage(cfg: TwoStageConfig, train_path: str | Path, out_dir: str | 
     ``metrics.csv`` gets val_loss / val_acc every ``stage1.val_every`` steps, and ``stage1/best.pt`` keeps the
     weights of the lowest); the model file takes the last weights of each stage. stage1_path: a label file of the
     same objects for stage 1 alone, or a list of them whose frames it takes together (default: train_path for
-    both), e.g. a capture without distractors while stage 2 learns among them (RESULTS.md, ablation row F). side_by_side: on a CPU with two or more threads, train stage 2
-    in a process of its own while stage 1 trains, when both are to train (False: one after the other; the same
-    weights, :mod:`detector.training.threads`). With ``stage2.narrow_steps`` 0 the stages train one after the other,
+    both), e.g. a capture without distractors while stage 2 learns among them (RESULTS.md, ablation row F).
+    side_by_side: on a CPU with two or more threads, train stage 2 in a process of its own while stage 1 trains,
+    when both are to train (False: one after the other; the same weights, :mod:`detector.training.threads`). With ``stage2.narrow_steps`` 0 the stages train one after the other,
     each on all threads (as runs saved before that setting did). Returns the model file's path.
     """
     if int(os.environ.get("WORLD_SIZE", "1")) > 1:
@@ -139,9 +139,6 @@ def train_two_stage(cfg: TwoStageConfig, train_path: str | Path, out_dir: str | 
     out_dir = Path(out_dir)
     s1, s2, geometry, infer = cfg.resolved()
     if stage1_path is not None:  # before hours of stage 1: the files must open and hold the same objects
-        if not isinstance(stage1_path, (str, Path)):
-            stage1_path = [Path(p) for p in stage1_path]
-            stage1_path = stage1_path[0] if len(stage1_path) == 1 else stage1_path
         _check_same_objects(stage1_path, Path(train_path), s1.class_ids, s2.class_ids)
     d1, d2 = stage_dirs(out_dir)
     done1, saved1 = _progress(d1 / "last.pt", "stage1")
@@ -284,13 +281,14 @@ def run_settings(saved: dict | None, now, given: dict, free: frozenset = frozens
     return {**kept, **given}
 
 
-def _check_same_objects(stage1_path: Path | list[Path], train_path: Path, ids1, ids2) -> None:
+def _check_same_objects(stage1_path: str | Path | Sequence[str | Path], train_path: Path, ids1, ids2) -> None:
     """Raise a one-line DetectorError unless the label files open and stage 1 and stage 2 would learn the
     same object ids from them (stage1_path: one file or several; ids1 / ids2: the stages' ``class_ids`` settings,
     None = all of the file's)."""
-    learned = [FrameSource(path, class_ids=ids).class_ids for path, ids in ((stage1_path, ids1), (train_path, ids2))]
+    stage1 = FrameSource(stage1_path, class_ids=ids1)
+    learned = [stage1.class_ids, FrameSource(train_path, class_ids=ids2).class_ids]
     if learned[0] != learned[1]:
-        given = " ".join(map(str, [stage1_path] if isinstance(stage1_path, Path) else stage1_path))
+        given = " ".join(map(str, stage1.paths))
         raise DetectorError(f"--stage1-data {given} holds objects {learned[0]}, the training file "
                             f"{train_path} {learned[1]}: both stages must learn the same objects")
 

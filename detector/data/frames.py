@@ -59,7 +59,7 @@ class FrameSource(torch.utils.data.Dataset):
         self.augment = bool(augment)
         self._files, self._pid = None, None
         counts, depths = [], []
-        for p in self.paths:
+        for k, p in enumerate(self.paths):
             lf = open_label_file(p)
             try:
                 with argen_errors():
@@ -72,7 +72,7 @@ class FrameSource(torch.utils.data.Dataset):
                     check_frame(lf.frame(0), p, 0)  # one frame checks the shared datasets' shapes and dtypes
             finally:
                 lf.close()
-            if p is self.paths[0]:
+            if k == 0:
                 self.objects = objects
             else:
                 _check_same_table(self.objects, objects, self.paths[0], p)
