@@ -63,8 +63,9 @@ def estimate(preds: Predictions, objects: ObjectInfo, cfg: GeometryConfig, timin
     surfaces run on past its model (:func:`detector.geometry.verify.continuation_checked`: a pose on part of a
     larger thing; the frame's dominant plane, the table, counts as such only for a pose lying in it): the poses
     after ICP, and the unrefined ones where they are the output (without ICP) or ``check_unrefined`` asks for them
-    (an evaluation that reports both). Adds "depth_check" seconds (the range image's too) and "continuation_check"
-    seconds.
+    (an evaluation that reports both). With ``cfg.nms_across_objects``, last, each list keeps one detection a place,
+    whatever its object (:func:`detector.geometry.voting.nms`). Adds "depth_check" seconds (the range image's too)
+    and "continuation_check" seconds.
     """
     dets = detect(preds.xyz, preds.obj_ids, preds.confidence, preds.control_points, objects, cfg, timings)
     if poser is not None:
@@ -118,8 +119,13 @@ def estimate(preds: Predictions, objects: ObjectInfo, cfg: GeometryConfig, timin
             refined = continuation_checked(check_refined, xyz, objects, cfg, support)
         if timings is not None:
             timings["continuation_check"] = timings.get("continuation_check", 0.0) + time.perf_counter() - t0
-    return ([d for d in dets if d.score >= lo],
-            [d for d in refined if d.score >= cfg.min_score] if refined is not None else None)
+    dets = [d for d in dets if d.score >= lo]
+    refined = [d for d in refined if d.score >= cfg.min_score] if refined is not None else None
+    if cfg.nms_across_objects:  # one object a place: the scores, final now, choose among a place's objects
+        dets = nms(dets, objects.diameters, cfg.nms_fraction, across_objects=True)
+        refined = nms(refined, objects.diameters, cfg.nms_fraction, across_objects=True) if refined is not None \
+            else None
+    return dets, refined
 
 
 def missing_surfaces(cfg: GeometryConfig, objects: ObjectInfo, model: str) -> str | None:

@@ -141,6 +141,41 @@ def test_nms_keeps_the_most_confident_of_close_detections():
     assert [(d.obj_id, d.score) for d in kept] == [(1, 0.9), (1, 0.7), (2, 0.6)]
 
 
+def test_nms_across_objects_keeps_one_object_a_place_within_the_smaller_diameter():
+    def det(score, x, oid):
+        return Detection(oid, score, np.eye(3), np.array([x, 0, 0.8]), 10, np.zeros((9, 3)), np.arange(3))
+    diameters = {1: 0.1, 2: 0.3}  # half the smaller: 0.05 m
+    dets = [det(0.9, 0.0, 1), det(0.7, 0.04, 2), det(0.8, 0.2, 2), det(0.6, 0.26, 1)]
+    kept = nms(dets, diameters, 0.5, across_objects=True)
+    # the 0.7 lies 0.04 m from the 0.9 of the other object: one place, the higher score stays; the 0.6 lies 0.06 m
+    # from the 0.8 of the other object: apart (half the larger diameter, 0.15 m, would have merged them)
+    assert [(d.obj_id, d.score) for d in kept] == [(1, 0.9), (2, 0.8), (1, 0.6)]
+    # each object alone: no two of one object within half its diameter (the two of object 2 lie 0.16 m apart)
+    assert len(nms(dets, diameters, 0.5)) == 4
+
+
+def test_estimate_outputs_one_object_a_place_unless_told_otherwise(monkeypatch):
+    """A stage-1 detection posed as two objects at one place (other_classes): the output keeps the higher score,
+    with ICP and without; ``nms_across_objects`` off keeps both."""
+    import detector.infer as infer
+
+    box = np.zeros((9, 3))
+    dets = [Detection(1, 0.7, np.eye(3), np.array([0.0, 0.0, 0.8]), 10, box, np.arange(3)),
+            Detection(2, 0.9, np.eye(3), np.array([0.01, 0.0, 0.8]), 10, box, np.arange(3)),
+            Detection(1, 0.8, np.eye(3), np.array([0.3, 0.0, 0.8]), 10, box, np.arange(3))]
+    monkeypatch.setattr(infer, "detect", lambda *a, **k: list(dets))
+    monkeypatch.setattr(infer, "refine", lambda ds, *a, **k: [replace(d, refined=True) for d in ds])
+    preds = type("P", (), {"xyz": np.zeros((3, 3)), "obj_ids": np.ones(3, int), "confidence": np.ones(3),
+                           "control_points": np.zeros((3, 9, 3))})()
+    objs = ObjectInfo({1: box, 2: box}, {1: 0.1, 2: 0.2}, {1: box, 2: box})
+    cfg = GeometryConfig(icp=True, depth_check=False, colour_check=False, part_check=False, continuation_check=False)
+    unrefined, refined = infer.estimate(preds, objs, cfg)
+    for out in (unrefined, refined):
+        assert [(d.obj_id, d.score) for d in out] == [(2, 0.9), (1, 0.8)]
+    unrefined, refined = infer.estimate(preds, objs, replace(cfg, nms_across_objects=False))
+    assert sorted(d.score for d in refined) == [0.7, 0.8, 0.9]
+
+
 def visible_surface(obj, R, t, n, rng):
     """Surface points of ``obj`` under (R, t) facing a camera at the origin, camera frame, metres."""
     pts, faces = obj.mesh.sample(n, return_index=True, seed=int(rng.integers(1 << 31)))

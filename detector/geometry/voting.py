@@ -121,12 +121,18 @@ def robust_control_points(votes: np.ndarray, weights: np.ndarray, diameter: floa
     return np.einsum("v,vij->ij", w, votes) / w.sum(), inl
 
 
-def nms(detections: list[Detection], diameters: dict[int, float], fraction: float) -> list[Detection]:
+def nms(detections: list[Detection], diameters: dict[int, float], fraction: float,
+        across_objects: bool = False) -> list[Detection]:
     """Non-maximum suppression by score: drop a detection whose centre lies within ``fraction`` of the
-    object's diameter (metres, per obj_id) of a higher-scoring detection of the same object. Returns kept, by score."""
+    object's diameter (metres, per obj_id) of a higher-scoring detection of the same object. ``across_objects``:
+    also of a higher-scoring detection of another object, within ``fraction`` of the smaller of the two diameters
+    (two solid objects do not share a place; a two-stage model poses one stage-1 detection as several objects,
+    :func:`other_classes`, and the scores choose among them). Returns kept, by score."""
     kept: list[Detection] = []
     for d in sorted(detections, key=lambda d: -d.score):
-        if all(k.obj_id != d.obj_id or np.linalg.norm(k.t - d.t) >= fraction * diameters[d.obj_id] for k in kept):
+        if all(np.linalg.norm(k.t - d.t) >= fraction * (diameters[d.obj_id] if k.obj_id == d.obj_id else
+                                                         min(diameters[d.obj_id], diameters[k.obj_id]))
+               for k in kept if across_objects or k.obj_id == d.obj_id):
             kept.append(d)
     return kept
 

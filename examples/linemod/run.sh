@@ -48,14 +48,15 @@ train_beside() {
   fi
 }
 # eval_run RUN LABELS REPORT "KEY=VALUE ..." [EVAL OPTIONS]: RUN's detector eval --icp with those --set values into
-# the folder REPORT, unless it holds a report that records its farthest point sampling and its surface-continuation
-# setting (one written before the tree-based FPS, 2026-12-06, or before that check, 2026-12-07, does not, and may be
-# of runs/lm8's inference of then: it is made again)
+# the folder REPORT, unless it holds a report that records its farthest point sampling, its surface-continuation
+# setting and its one-detection-a-place setting (one written before the tree-based FPS, 2026-12-06, or before those
+# two, 2026-12-07, does not, and may be of runs/lm8's inference of then: it is made again)
 eval_run() {
   local r=$1 data=$2 rep=$3
   sets_of "$4"
   shift 4
-  { grep -qs '"fps": "' "$rep/report.json" && grep -qs '"continuation_check"' "$rep/report.json"; } ||
+  { grep -qs '"fps": "' "$rep/report.json" && grep -qs '"continuation_check"' "$rep/report.json" &&
+    grep -qs '"nms_across_objects"' "$rep/report.json"; } ||
     $D eval "$r/model.pt" "$data" --out "$rep" --icp --quiet "${SETS[@]}" "$@"
 }
 # eval_captures RUN [SUFFIX EVAL OPTIONS...]: RUN/model.pt with ICP on both test and both validation captures, into
@@ -148,6 +149,11 @@ fi
 eval_run runs/lm8_offboard "$OUT/lm_test.h5" reports/lm8_offboard_test ""
 eval_run runs/lm8_offboard "$OUT/lchf_test.h5" reports/lm8_offboard_lchf ""
 false_alarms runs/lm8_offboard/model.pt
+#    and without one detection a place (`geometry.nms_across_objects=false`, its inference until 2026-12-07's last
+#    change; RESULTS.md, "The current lm8.pt"), beside the default on both validation captures, where it was chosen
+eval_captures runs/lm8_offboard
+eval_captures runs/lm8_offboard _apart --set "$G.nms_across_objects=false"
+false_alarms runs/lm8_offboard/model.pt --set "$G.nms_across_objects=false"
 
 # 4. the previous lm8.pt (runs/lm8) evaluated with its own thresholds: linemod test set with and without ICP, lchf test set (F1), also with
 #    sampling seeds 1 (both) and 2 (lchf), and both validation captures with sampling seeds 0-3

@@ -28,11 +28,12 @@ INFER=(--set sampling.passes=1 --set geometry.min_votes=3)
 # point sampling at inference, before the tree-based one became the default (RESULTS.md): their evaluations and the
 # model files they train keep it (BEFORE)
 BEFORE=(--set sampling.fps=trained)
-# fresh REPORT: REPORT holds a report that records its farthest point sampling and its surface-continuation setting
-# (one written before 2026-12-06, or before that check, 2026-12-07, does not, and may be of the default inference of
-# then: it is made again)
+# fresh REPORT: REPORT holds a report that records its farthest point sampling, its surface-continuation setting and
+# its one-detection-a-place setting (one written before 2026-12-06, or before those two, 2026-12-07, does not, and may
+# be of the default inference of then: it is made again)
 fresh() {  # the sampling's FPS, a string (frames per second: a number)
-  grep -qs '"fps": "' "$1/report.json" && grep -qs '"continuation_check"' "$1/report.json"
+  grep -qs '"fps": "' "$1/report.json" && grep -qs '"continuation_check"' "$1/report.json" &&
+    grep -qs '"nms_across_objects"' "$1/report.json"
 }
 step() { local name=$1; shift; local t0; t0=$(date +%s); "$@"; echo "$name $(( $(date +%s) - t0 )) s" >> "$T"; }
 # train_beside KEEP R YAML [TRAIN OPTIONS]: the run folder R holds a copy of the run's finished stage KEEP (stage1 or
@@ -345,4 +346,12 @@ if [ "${DEFAULT_RECIPE:-0}" = 1 ]; then
   [ -f "$REP/simtest_default_recipe/report.json" ] || $D eval "$X/model.pt" "$OUT/ycbv_simtest.h5" \
     --out "$REP/simtest_default_recipe" --icp --quiet
 fi
+# 6k. one detection a place (`geometry.nms_across_objects`, on by default since 2026-12-07's last change; RESULTS.md,
+#     the table's second row): the shipped model without it, seeds 0-7 on the real frames, beside step 6c's default
+#     rows with it
+for seed in 0 1 2 3 4 5 6 7; do
+  [ -f "$REP/seeds_apart/apart-$seed/report.json" ] || $D eval "$RUN/model.pt" "$OUT/ycbv_real.h5" \
+    --out "$REP/seeds_apart/apart-$seed" --icp --min-visib 0 --quiet --seed $seed --set geometry.nms_across_objects=false
+done
+.venv/bin/python examples/ycbv_real/seeds.py "$REP/seeds_apart"
 cat "$T"
