@@ -87,12 +87,14 @@ def evaluate(predictor: Predictor, label_path: str | Path, out_dir: str | Path, 
         table = lf.objects
         source = (root, split, str(lf.attrs.get("source_argen_json") or ""))
         in_file = ObjectInfo.from_table(table)
+        lacking = "the label file does not carry" if objects is None else \
+            "neither the model nor the label file carries"  # an oracle evaluation has no model
         if objects is None:
             objects = in_file
         else:  # a model trained before its table carried surface normals takes the label file's, of the same meshes
             objects.take_surfaces(in_file)
         if cfg.continuation_check and not objects.surfaces:
-            print("warning: geometry.continuation_check is on, but neither the model nor the label file carries the "
+            print(f"warning: geometry.continuation_check is on, but {lacking} the "
                   "objects' surface normals (label files written before 2026-12-07): nothing is checked",
                   file=sys.stderr)
         idx = range(lf.num_frames) if frames is None else frames

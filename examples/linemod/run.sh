@@ -11,6 +11,7 @@ set -euo pipefail
 cd "$(dirname "$0")/../.."
 A=.venv/bin/argen
 D=.venv/bin/detector
+. examples/stage1_beside.sh
 M=${MODELS:-../shared/data/lm/models}      # BOP LineMOD models (mm)
 OUT=${OUT:-data}
 mkdir -p "$OUT"
@@ -141,11 +142,7 @@ fi
 #     (RESULTS.md, "Stage 1 without distractors on the board"). The two stages train independently, so this equals
 #     `detector train lm_train.h5 --stage1-data lm_offboard.h5 --set stage1.seed=1 --set stage2.steps=24000`
 #     (README's walk-through). Evaluated on both test captures and the real frames without LineMOD objects
-if [ ! -f runs/lm8_offboard/model.pt ]; then
-  [ -d runs/lm8_offboard/stage2 ] || { mkdir -p runs/lm8_offboard && cp -r runs/lm8/stage2 runs/lm8_offboard/; }
-  cp runs/lm8/two_stage.yaml runs/lm8_offboard/
-  $D train "$OUT/lm_train.h5" --stage1-data "$OUT/lm_offboard.h5" --out runs/lm8_offboard --resume --quiet
-fi
+stage1_beside runs/lm8 runs/lm8_offboard "$OUT/lm_train.h5" "{}" "$OUT/lm_offboard.h5"
 eval_run runs/lm8_offboard "$OUT/lm_test.h5" reports/lm8_offboard_test ""
 eval_run runs/lm8_offboard "$OUT/lchf_test.h5" reports/lm8_offboard_lchf ""
 false_alarms runs/lm8_offboard/model.pt
@@ -481,13 +478,7 @@ if [ "${STAGE1_CLEAN:-0}" = 1 ]; then
            "lm8_offboard_seed2:lm_offboard:{seed: 2}"; do
     IFS=: read -r name data sets <<< "$v"
     r=runs/$name
-    if [ ! -f "$r/model.pt" ]; then
-      [ -d "$r/stage2" ] || { mkdir -p "$r" && cp -r runs/lm8/stage2 "$r/"; }
-      .venv/bin/python -c "import sys, yaml; c = yaml.safe_load(open(sys.argv[1])); \
-c['stage1'] = {**(c.get('stage1') or {}), **yaml.safe_load(sys.argv[2])}; yaml.safe_dump(c, open(sys.argv[3], 'w'))" \
-        runs/lm8/two_stage.yaml "$sets" "$r/two_stage.yaml"
-      $D train "$OUT/lm_train.h5" --stage1-data "$OUT/$data.h5" --out "$r" --resume --quiet
-    fi
+    stage1_beside runs/lm8 "$r" "$OUT/lm_train.h5" "$sets" "$OUT/$data.h5"
     eval_run "$r" "$OUT/lm_test.h5" "reports/${name}_test" ""
     eval_run "$r" "$OUT/lchf_test.h5" "reports/${name}_lchf" ""
     false_alarms "$r/model.pt"

@@ -14,6 +14,7 @@ set -euo pipefail
 cd "$(dirname "$0")/../.."
 A=.venv/bin/argen
 D=.venv/bin/detector
+. examples/stage1_beside.sh
 REAL=${REAL:-../shared/data/ycbv_real}
 M=$REAL/models                         # the three meshes (BOP, mm): all a user needs, with their camera.json
 OUT=${OUT:-data}
@@ -302,12 +303,7 @@ if [ "${DEFAULT_RECIPE:-0}" = 1 ]; then
   [ -f "$X/model.pt" ] || $D train "$OUT/ycbv_train.h5" --out "$X" --set stage2.steps=4000 \
     --set stage2.keep_every=2000 "${resume[@]}" --quiet
   for g in G1:1 G2:0.1; do
-    r=$RUN.default_${g%%:*}
-    if [ ! -f "$r/model.pt" ]; then
-      [ -d "$r/stage2" ] || { mkdir -p "$r" && cp -r "$X/stage2" "$r/"; }
-      sed "s/^stage1: {}/stage1:\n  plane_keep: ${g#*:}/" "$X/two_stage.yaml" > "$r/two_stage.yaml"
-      $D train "$OUT/ycbv_train.h5" --stage1-data "$OUT/ycbv_stage1.h5" --out "$r" --resume --quiet
-    fi
+    stage1_beside "$X" "$RUN.default_${g%%:*}" "$OUT/ycbv_train.h5" "{plane_keep: ${g#*:}}" "$OUT/ycbv_stage1.h5"
   done
   #   the default's stage 1 on both captures together (MIX: half its frames with distractors) and on a third capture
   #   with the distractors around the board but none on it (OFF); OFF's capture under M's stage-1 settings (OFFG)
@@ -316,13 +312,8 @@ if [ "${DEFAULT_RECIPE:-0}" = 1 ]; then
   for g in "MIX:$X:$OUT/ycbv_stage1.h5 $OUT/ycbv_train.h5" "OFF:$X:$OUT/ycbv_offboard.h5" \
            "OFFG:$RUN:$OUT/ycbv_offboard.h5"; do
     IFS=: read -r name from files <<< "$g"
-    r=$RUN.default_$name
-    if [ ! -f "$r/model.pt" ]; then
-      [ -d "$r/stage2" ] || { mkdir -p "$r" && cp -r "$from/stage2" "$r/"; }
-      cp "$from/two_stage.yaml" "$r/"
-      s1=(); for f in $files; do s1+=(--stage1-data "$f"); done
-      $D train "$OUT/ycbv_train.h5" "${s1[@]}" --out "$r" --resume --quiet
-    fi
+    # shellcheck disable=SC2086  # FILES: one or two label files
+    stage1_beside "$from" "$RUN.default_$name" "$OUT/ycbv_train.h5" "{}" $files
   done
   combine() {
     .venv/bin/python -c "import sys; from detector.checkpoint import combine_stages as c; c(*sys.argv[1:])" "$@"
