@@ -150,6 +150,12 @@ false_alarms runs/lm8_offboard/model.pt
 #    change; RESULTS.md, "The current lm8.pt"), beside the default on both validation captures, where it was chosen
 eval_captures runs/lm8_offboard
 eval_captures runs/lm8_offboard _apart --set "$G.nms_across_objects=false"
+#    and fewer other-object copies (`geometry.other_classes` 0.2 and 0.3 instead of 0.1; RESULTS.md, the same paragraph)
+for oc in 0.2 0.3; do
+  for d in lm_val lchf_val; do
+    eval_run runs/lm8_offboard "$OUT/$d.h5" "reports/lm8_offboard_oc$oc-$d" "$G.other_classes=$oc"
+  done
+done
 false_alarms runs/lm8_offboard/model.pt --set "$G.nms_across_objects=false"
 
 # 4. the previous lm8.pt (runs/lm8) evaluated with its own thresholds: linemod test set with and without ICP, lchf test set (F1), also with
