@@ -150,6 +150,11 @@ false_alarms runs/lm8_offboard/model.pt
 #    change; RESULTS.md, "The current lm8.pt"), beside the default on both validation captures, where it was chosen
 eval_captures runs/lm8_offboard
 eval_captures runs/lm8_offboard _apart --set "$G.nms_across_objects=false"
+for v in "" "$G.nms_across_objects=false"; do  # sampling seed 1 on the linemod test capture, 1 and 2 on LC-HF's
+  n=lm8_offboard${v:+_apart}
+  eval_run runs/lm8_offboard "$OUT/lm_test.h5" "reports/${n}_test_seed1" "$v" --seed 1
+  for seed in 1 2; do eval_run runs/lm8_offboard "$OUT/lchf_test.h5" "reports/${n}_lchf_seed$seed" "$v" --seed $seed; done
+done
 #    and fewer other-object copies (`geometry.other_classes` 0.2 and 0.3 instead of 0.1; RESULTS.md, the same paragraph)
 for oc in 0.2 0.3; do
   for d in lm_val lchf_val; do
