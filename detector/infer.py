@@ -122,9 +122,9 @@ def estimate(preds: Predictions, objects: ObjectInfo, cfg: GeometryConfig, timin
     dets = [d for d in dets if d.score >= lo]
     refined = [d for d in refined if d.score >= cfg.min_score] if refined is not None else None
     if cfg.nms_across_objects:  # one object a place: the scores, final now, choose among a place's objects
-        dets = nms(dets, objects.diameters, cfg.nms_fraction, across_objects=True)
-        refined = nms(refined, objects.diameters, cfg.nms_fraction, across_objects=True) if refined is not None \
-            else None
+        centres = {oid: cps[8] for oid, cps in objects.control_points.items()}  # where each stands: its box centre
+        dets = nms(dets, objects.diameters, cfg.nms_fraction, True, centres)
+        refined = nms(refined, objects.diameters, cfg.nms_fraction, True, centres) if refined is not None else None
     return dets, refined
 
 

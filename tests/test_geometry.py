@@ -154,6 +154,22 @@ def test_nms_across_objects_keeps_one_object_a_place_within_the_smaller_diameter
     assert len(nms(dets, diameters, 0.5)) == 4
 
 
+def test_nms_across_objects_measures_between_posed_box_centres_not_model_origins():
+    """Object 2's mesh has its origin 0.1 m below its box centre (at its base, along its z): posed lying on its side
+    (z turned onto x), its box centre stands where object 1's does although the two origins lie 0.1 m apart; and
+    two origins 0.02 m apart can belong to boxes that stand apart."""
+    Rz_to_x = np.array([[0.0, 0, 1], [0, 1, 0], [-1, 0, 0]])  # model z -> camera x
+    centres = {1: np.zeros(3), 2: np.array([0.0, 0.0, 0.1])}
+    diameters = {1: 0.1, 2: 0.3}
+    one = Detection(1, 0.9, np.eye(3), np.array([0.1, 0, 0.8]), 10, np.zeros((9, 3)), np.arange(3))
+    two = Detection(2, 0.7, Rz_to_x, np.array([0.0, 0, 0.8]), 10, np.zeros((9, 3)), np.arange(3))
+    np.testing.assert_allclose(Rz_to_x @ centres[2] + two.t, one.t)
+    assert nms([one, two], diameters, 0.5, True, centres) == [one]  # one place
+    assert nms([one, two], diameters, 0.5, True) == [one, two]  # by the origins, 0.1 m apart: two places
+    near = replace(two, t=np.array([0.12, 0, 0.8]))  # origin 0.02 m from object 1's, box centre 0.12 m away
+    assert nms([one, near], diameters, 0.5, True, centres) == [one, near]
+
+
 def test_estimate_outputs_one_object_a_place_unless_told_otherwise(monkeypatch):
     """A stage-1 detection posed as two objects at one place (other_classes): the output keeps the higher score,
     with ICP and without; ``nms_across_objects`` off keeps both."""

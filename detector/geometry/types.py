@@ -18,11 +18,11 @@ class GeometryConfig:
     mode_radius: > 0 clusters the centre votes around their density modes within this fraction of the diameter
     (:func:`vote_modes`; instances side by side stay apart) instead of in touching ``cell`` voxels;
     nms_fraction: centres closer than this fraction of the object's diameter are one detection;
-    nms_across_objects: the output keeps one detection per place whatever its object: centres of two objects closer
-    than ``nms_fraction`` of the smaller diameter are one detection, the higher-scoring (:func:`nms`; a two-stage
-    model poses a stage-1 detection as each object its points make likely, and without it a wrong object's pose
-    stayed beside the right one's: an eggbox on a glue in 25 of the 27 false eggboxes of a simulated LineMOD
-    test capture, RESULTS.md);
+    nms_across_objects: the output keeps one detection per place whatever its object: posed box centres of two
+    objects closer than ``nms_fraction`` of the smaller diameter are one detection, the higher-scoring
+    (:func:`nms`; a two-stage model poses a stage-1 detection as each object its points make likely, and without it
+    a wrong object's pose stayed beside the right one's: an eggbox on a glue in 25 of the 27 false eggboxes of a
+    simulated LineMOD test capture, RESULTS.md);
     inlier_fraction: votes farther than this fraction of the diameter from the median are outliers;
     icp: refine with ICP; icp_distance: ICP correspondence distance as a fraction of the diameter;
     icp_kernel: Tukey robust-loss scale as a fraction of the diameter (0 = plain least squares);

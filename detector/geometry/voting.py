@@ -122,19 +122,26 @@ def robust_control_points(votes: np.ndarray, weights: np.ndarray, diameter: floa
 
 
 def nms(detections: list[Detection], diameters: dict[int, float], fraction: float,
-        across_objects: bool = False) -> list[Detection]:
+        across_objects: bool = False, box_centres: dict[int, np.ndarray] | None = None) -> list[Detection]:
     """Non-maximum suppression by score: drop a detection whose centre lies within ``fraction`` of the
     object's diameter (metres, per obj_id) of a higher-scoring detection of the same object. ``across_objects``:
     also of a higher-scoring detection of another object, within ``fraction`` of the smaller of the two diameters
     (two solid objects do not share a place; a two-stage model poses one stage-1 detection as several objects,
-    :func:`other_classes`, and the scores choose among them). Returns kept, by score."""
-    kept: list[Detection] = []
+    :func:`other_classes`, and the scores choose among them). A detection's centre is its model origin ``t``, or
+    with ``box_centres`` (per obj_id, (3,) metres in the model frame: ``ObjectInfo.control_points[obj_id][8]``) its
+    posed box centre ``R @ c + t``: a mesh's origin may lie anywhere (at its base, at a corner), and two objects'
+    origins say little of where they stand. Returns kept, by score."""
+    def centre(d: Detection) -> np.ndarray:
+        return d.t if box_centres is None else np.asarray(d.R) @ box_centres[d.obj_id] + d.t
+
+    kept: list[tuple[Detection, np.ndarray]] = []
     for d in sorted(detections, key=lambda d: -d.score):
-        if all(np.linalg.norm(k.t - d.t) >= fraction * (diameters[d.obj_id] if k.obj_id == d.obj_id else
-                                                         min(diameters[d.obj_id], diameters[k.obj_id]))
-               for k in kept if across_objects or k.obj_id == d.obj_id):
-            kept.append(d)
-    return kept
+        c = centre(d)
+        if all(np.linalg.norm(kc - c) >= fraction * (diameters[d.obj_id] if k.obj_id == d.obj_id else
+                                                     min(diameters[d.obj_id], diameters[k.obj_id]))
+               for k, kc in kept if across_objects or k.obj_id == d.obj_id):
+            kept.append((d, c))
+    return [d for d, _ in kept]
 
 
 def other_classes(detections: list[Detection], class_probs: np.ndarray, class_ids: list[int], objects: ObjectInfo,
