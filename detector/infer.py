@@ -80,7 +80,7 @@ def estimate(preds: Predictions, objects: ObjectInfo, cfg: GeometryConfig, timin
         dets = depth_checked(dets, frame, objects, cfg)
     t_check = time.perf_counter() - t0
     if poser is not None:
-        dets = nms(dets, objects.diameters, cfg.nms_fraction)
+        dets = nms(dets, objects.diameters, cfg.nms_fraction, box_centres=objects.box_centres())
     lo = cfg.min_score if cfg.min_score_unrefined is None else cfg.min_score_unrefined
     dets = [d for d in dets if d.score >= lo or not d.other_class]  # a weak other-class copy is not worth an ICP
     colours = features[:, 3:6] if cfg.colour_check and features is not None and objects.texture else None
@@ -122,7 +122,7 @@ def estimate(preds: Predictions, objects: ObjectInfo, cfg: GeometryConfig, timin
     dets = [d for d in dets if d.score >= lo]
     refined = [d for d in refined if d.score >= cfg.min_score] if refined is not None else None
     if cfg.nms_across_objects:  # one object a place: the scores, final now, choose among a place's objects
-        centres = {oid: cps[8] for oid, cps in objects.control_points.items()}  # where each stands: its box centre
+        centres = objects.box_centres()
         dets = nms(dets, objects.diameters, cfg.nms_fraction, True, centres)
         refined = nms(refined, objects.diameters, cfg.nms_fraction, True, centres) if refined is not None else None
     return dets, refined

@@ -157,7 +157,8 @@ def test_nms_across_objects_keeps_one_object_a_place_within_the_smaller_diameter
 def test_nms_across_objects_measures_between_posed_box_centres_not_model_origins():
     """Object 2's mesh has its origin 0.1 m below its box centre (at its base, along its z): posed lying on its side
     (z turned onto x), its box centre stands where object 1's does although the two origins lie 0.1 m apart; and
-    two origins 0.02 m apart can belong to boxes that stand apart."""
+    two origins 0.02 m apart can belong to boxes that stand apart; and object 2 posed twice at one place, turned
+    half way, has origins 0.2 m apart: one detection by its box centres (per object as across objects)."""
     Rz_to_x = np.array([[0.0, 0, 1], [0, 1, 0], [-1, 0, 0]])  # model z -> camera x
     centres = {1: np.zeros(3), 2: np.array([0.0, 0.0, 0.1])}
     diameters = {1: 0.1, 2: 0.3}
@@ -168,6 +169,12 @@ def test_nms_across_objects_measures_between_posed_box_centres_not_model_origins
     assert nms([one, two], diameters, 0.5, True) == [one, two]  # by the origins, 0.1 m apart: two places
     near = replace(two, t=np.array([0.12, 0, 0.8]))  # origin 0.02 m from object 1's, box centre 0.12 m away
     assert nms([one, near], diameters, 0.5, True, centres) == [one, near]
+    # one object twice at one place, turned half way: origins 0.2 m apart, the same box centre: one detection
+    Rz_to_minus_x = np.array([[0.0, 0, -1], [0, 1, 0], [1, 0, 0]])  # model z -> camera -x
+    flipped = replace(two, score=0.6, R=Rz_to_minus_x, t=np.array([0.2, 0, 0.8]))
+    np.testing.assert_allclose(flipped.R @ centres[2] + flipped.t, two.R @ centres[2] + two.t)
+    assert nms([two, flipped], diameters, 0.5, box_centres=centres) == [two]
+    assert nms([two, flipped], diameters, 0.5) == [two, flipped]
 
 
 def test_estimate_outputs_one_object_a_place_unless_told_otherwise(monkeypatch):

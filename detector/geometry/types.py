@@ -17,7 +17,7 @@ class GeometryConfig:
     tau: confidence threshold; cell: voting voxel size, metres; min_votes: fewest votes an instance needs;
     mode_radius: > 0 clusters the centre votes around their density modes within this fraction of the diameter
     (:func:`vote_modes`; instances side by side stay apart) instead of in touching ``cell`` voxels;
-    nms_fraction: centres closer than this fraction of the object's diameter are one detection;
+    nms_fraction: posed box centres closer than this fraction of the object's diameter are one detection;
     nms_across_objects: the output keeps one detection per place whatever its object: posed box centres of two
     objects closer than ``nms_fraction`` of the smaller diameter are one detection, the higher-scoring
     (:func:`nms`; a two-stage model poses a stage-1 detection as each object its points make likely, and without it
@@ -282,6 +282,11 @@ class ObjectInfo:
                  and k in other.diameters and same_mesh(self.diameters[k], other.diameters[k])]
         self.surfaces.update({k: other.surfaces[k] for k in taken})
         return taken
+
+    def box_centres(self) -> dict[int, np.ndarray]:
+        """Each object's box centre, (3,) metres in its model frame (its last control point): where a posed object
+        stands is ``R @ c + t``, wherever its mesh puts the origin."""
+        return {oid: np.asarray(cps[8], np.float64) for oid, cps in self.control_points.items()}
 
     def surface_spacing(self, obj_id: int) -> float:
         """The median distance (metres) between neighbouring samples of ``obj_id``'s surface (one in ``surfaces``),

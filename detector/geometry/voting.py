@@ -206,7 +206,7 @@ def detect(xyz: np.ndarray, obj_ids: np.ndarray, confidence: np.ndarray, control
             R, t = kabsch(objects.control_points[oid], cps)
         score = float(w[inl].mean() * inl.mean()) if inl.any() else 0.0
         dets.append(Detection(oid, score, R, t, len(members), cps, members[inl] if inl.any() else members))
-    dets = nms(dets, objects.diameters, cfg.nms_fraction)
+    dets = nms(dets, objects.diameters, cfg.nms_fraction, box_centres=objects.box_centres())
     if timings is not None:
         timings["voting"] = timings.get("voting", 0.0) + t1 - t0
         timings["kabsch"] = timings.get("kabsch", 0.0) + time.perf_counter() - t1
