@@ -161,6 +161,10 @@ for oc in 0.2 0.3; do
     eval_run runs/lm8_offboard "$OUT/$d.h5" "reports/lm8_offboard_oc$oc-$d" "$G.other_classes=$oc"
   done
 done
+#    and a lower score threshold (0.6, 0.55 instead of the model's 0.65) on both validation captures
+for ms in 0.6 0.55; do
+  for d in lm_val lchf_val; do eval_run runs/lm8_offboard "$OUT/$d.h5" "reports/lm8_offboard_ms$ms-$d" "" --min-score $ms; done
+done
 false_alarms runs/lm8_offboard/model.pt --set "$G.nms_across_objects=false"
 
 # 4. the previous lm8.pt (runs/lm8) evaluated with its own thresholds: linemod test set with and without ICP, lchf test set (F1), also with
