@@ -161,6 +161,10 @@ for oc in 0.2 0.3; do
     eval_run runs/lm8_offboard "$OUT/$d.h5" "reports/lm8_offboard_oc$oc-$d" "$G.other_classes=$oc"
   done
 done
+#    another camera's colours (RESULTS.md, "Another camera's colours"): every change on the linemod validation
+#    capture, three on the LC-HF-style one
+.venv/bin/python bench/probe_colour.py runs/lm8_offboard/model.pt "$OUT/lm_val.h5"
+.venv/bin/python bench/probe_colour.py runs/lm8_offboard/model.pt "$OUT/lchf_val.h5" --change none darker warm
 #    and a lower score threshold (0.6, 0.55 instead of the model's 0.65) on both validation captures
 for ms in 0.6 0.55; do
   for d in lm_val lchf_val; do eval_run runs/lm8_offboard "$OUT/$d.h5" "reports/lm8_offboard_ms$ms-$d" "" --min-score $ms; done
