@@ -758,6 +758,25 @@ def test_stage1_data_trains_stage1_on_its_own_file(labels, tmp_path):
     assert read_checkpoint(tmp_path / "two" / "stage1" / "last.pt")["extra"]["train_file"] == f"{plain} {labels}"
     row = (tmp_path / "two" / "stage1" / "metrics.csv").read_text().splitlines()[1].split(",")
     assert row[:2] == ["1", "0.5"]
+    # examples/stage1_beside.sh: stage 1 alone beside the finished stage 2 of a run, with a stage-1 override
+    import os
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[1]
+    env = {**os.environ, "PYTHON": sys.executable, "DETECTOR": str(Path(sys.executable).parent / "detector")}
+    beside = tmp_path / "beside"
+    call = ["bash", "-c", '. examples/stage1_beside.sh && stage1_beside "$@"', "-", str(out), str(beside), str(labels),
+            "{seed: 5}", str(plain)]
+    r = subprocess.run(call, cwd=root, env=env, capture_output=True, text=True)
+    assert r.returncode == 0, r.stderr
+    assert (beside / "stage2" / "last.pt").read_bytes() == (out / "stage2" / "last.pt").read_bytes()
+    assert yaml.safe_load((beside / "two_stage.yaml").read_text())["stage1"]["seed"] == 5
+    assert yaml.safe_load((beside / "stage1" / "config.yaml").read_text())["seed"] == 5
+    assert read_checkpoint(beside / "stage1" / "last.pt")["extra"]["train_file"] == str(plain)
+    made = (beside / "model.pt").stat().st_mtime_ns
+    assert subprocess.run(call, cwd=root, env=env).returncode == 0 and (beside / "model.pt").stat().st_mtime_ns == made
     # the model poses the mug with the part symmetry stage 2 was taught under, from stage 2's file
     from detector.checkpoint import load_checkpoint
     from detector.infer import checkpoint_objects
