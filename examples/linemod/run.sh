@@ -141,14 +141,13 @@ fi
 #     again (seed 1, one thread, as beside stage 2; about 16 minutes) on the capture without distractors on the board
 #     (RESULTS.md, "Stage 1 without distractors on the board"). The two stages train independently, so this equals
 #     `detector train lm_train.h5 --stage1-data lm_offboard.h5 --set stage1.seed=1 --set stage2.steps=24000`
-#     (README's walk-through). Evaluated on both test captures and the real frames without LineMOD objects
+#     (README's walk-through). Evaluated on both test and both validation captures (reports/lm8_offboard-CAPTURE)
+#     and the real frames without LineMOD objects
 stage1_beside runs/lm8 runs/lm8_offboard "$OUT/lm_train.h5" "{}" "$OUT/lm_offboard.h5"
-eval_run runs/lm8_offboard "$OUT/lm_test.h5" reports/lm8_offboard_test ""
-eval_run runs/lm8_offboard "$OUT/lchf_test.h5" reports/lm8_offboard_lchf ""
+eval_captures runs/lm8_offboard
 false_alarms runs/lm8_offboard/model.pt
 #    and without one detection a place (`geometry.nms_across_objects=false`, its inference until 2026-12-07's last
-#    change; RESULTS.md, "The current lm8.pt"), beside the default on both validation captures, where it was chosen
-eval_captures runs/lm8_offboard
+#    change; RESULTS.md, "The current lm8.pt"; chosen on the validation captures)
 eval_captures runs/lm8_offboard _apart --set "$G.nms_across_objects=false"
 for v in "" "$G.nms_across_objects=false"; do  # sampling seed 1 on the linemod test capture, 1 and 2 on LC-HF's
   n=lm8_offboard${v:+_apart}

@@ -340,13 +340,15 @@ fi
 # 6k. one detection a place (`geometry.nms_across_objects`, on by default since 2026-12-07's last change; RESULTS.md,
 #     the table's second row): the shipped model without it, and with fewer other-object copies
 #     (`geometry.other_classes` 0.2 and 0.3 instead of 0.1; RESULTS.md, lm8's "The current lm8.pt"), seeds 0-7 on the
-#     real frames, beside step 6c's default rows
-for v in "apart:geometry.nms_across_objects=false" "oc0.2:geometry.other_classes=0.2" \
-         "oc0.3:geometry.other_classes=0.3"; do
-  for seed in 0 1 2 3 4 5 6 7; do
-    [ -f "$REP/seeds_apart/${v%%:*}-$seed/report.json" ] || $D eval "$RUN/model.pt" "$OUT/ycbv_real.h5" \
-      --out "$REP/seeds_apart/${v%%:*}-$seed" --icp --min-visib 0 --quiet --seed $seed --set "${v#*:}"
+#     real frames, beside step 6c's default rows. Only with APART=1
+if [ "${APART:-0}" = 1 ]; then
+  for v in "apart:geometry.nms_across_objects=false" "oc0.2:geometry.other_classes=0.2" \
+           "oc0.3:geometry.other_classes=0.3"; do
+    for seed in 0 1 2 3 4 5 6 7; do
+      [ -f "$REP/seeds_apart/${v%%:*}-$seed/report.json" ] || $D eval "$RUN/model.pt" "$OUT/ycbv_real.h5" \
+        --out "$REP/seeds_apart/${v%%:*}-$seed" --icp --min-visib 0 --quiet --seed $seed --set "${v#*:}"
+    done
   done
-done
-.venv/bin/python examples/ycbv_real/seeds.py "$REP/seeds_apart"
+  .venv/bin/python examples/ycbv_real/seeds.py "$REP/seeds_apart"
+fi
 cat "$T"
