@@ -3,8 +3,10 @@ points' colours changed the way a real camera's differ from the renderer's (expo
 colour), in each stage or in both. Real frames are not available here; this bounds what a colour mismatch costs.
 
 Usage: python bench/probe_colour.py CKPT LABELS [--frames N] [--change NAME ...] [--stage both|stage1|stage2]
+                                    [--set geometry.KEY=VALUE | infer.KEY=VALUE ...]
 (NAME: none, darker, brighter, warm, gamma, grey, zeros; default all). Prints one line per change: ADD(-S)@10 %
-with and without ICP and F1@15 % (precision / recall), with the model's own settings.
+with and without ICP and F1@15 % (precision / recall), with the model's own settings (``--set`` over them, as
+``detector eval --set``: e.g. stage 2 without its colour level, ``--set infer.colour_level=false``).
 """
 
 from __future__ import annotations
@@ -20,7 +22,8 @@ import torch
 from detector.checkpoint import load_checkpoint
 from detector.data.frames import open_label_file
 from detector.evaluate import evaluate
-from detector.infer import checkpoint_geometry_config, checkpoint_objects, checkpoint_poser
+from detector.errors import DetectorError
+from detector.infer import checkpoint_geometry_config, checkpoint_objects, checkpoint_poser, split_sets
 from detector.stage1.predictor import network_predictor
 
 #: Colour changes of the (N,3) colours in [0, 1].
@@ -59,16 +62,24 @@ def main() -> None:
     ap.add_argument("--frames", type=int, default=None, help="first N frames (default: all)")
     ap.add_argument("--change", nargs="*", default=list(CHANGES), choices=list(CHANGES))
     ap.add_argument("--stage", default="both", choices=["both", "stage1", "stage2"])
+    ap.add_argument("--set", dest="sets", action="append", default=[],
+                    help="geometry.KEY=VALUE or infer.KEY=VALUE over the model's settings")
     a = ap.parse_args()
     torch.set_num_threads(2)
-    ckpt = load_checkpoint(a.ckpt, "cpu")
+    try:
+        geometry, sampling, infer = split_sets(a.sets)
+        ckpt = load_checkpoint(a.ckpt, "cpu", sampling)
+        checkpoint_geometry_config(ckpt, None, True, None, geometry)
+        checkpoint_poser(ckpt, checkpoint_objects(ckpt)[0], "cpu", 0, infer)
+    except DetectorError as e:
+        raise SystemExit(f"probe_colour.py: {e}") from None
     with open_label_file(a.labels) as lf:
         n = lf.num_frames if a.frames is None else min(a.frames, lf.num_frames)
     for name in a.change:
         change = CHANGES[name]
-        cfg = checkpoint_geometry_config(ckpt, None, True, None)
+        cfg = checkpoint_geometry_config(ckpt, None, True, None, geometry)
         base_pred = network_predictor(ckpt, 0)
-        poser = checkpoint_poser(ckpt, checkpoint_objects(ckpt)[0], "cpu", 0)
+        poser = checkpoint_poser(ckpt, checkpoint_objects(ckpt)[0], "cpu", 0, infer)
         pred = recolouring_predictor(base_pred, change) if a.stage in ("both", "stage1") else base_pred
         if poser is not None and a.stage in ("both", "stage2"):
             def stage2(dets, features, timings=None, _s=poser, _c=change):

@@ -17,6 +17,7 @@ from detector.errors import DetectorError, argen_errors
 from detector.geometry.types import same_mesh
 from detector.stage1.network import ModelConfig, PointNet2
 from detector.stage1.sampling import SamplingConfig
+from detector.stage2.colour_level import colour_levels
 from detector.stage2.network import build_stage2_net
 from detector.training.checkpoint_file import FORMAT, TWO_STAGE_VERSION, atomic_torch_save, read_checkpoint
 
@@ -33,8 +34,9 @@ class Checkpoint:
     num_points: points sampled per frame; step: training steps done; extra: train config, metrics;
     normalisation: the network input's colour normalisation (``detector.data.augment.input_normalisation``: with
     "colour": "none" the network has no colour input);
-    stage2_net: a two-stage model's crop network (stage 2) or None; stage2: its part of the file (configs, classes)
-    without the weights; geometry_config: inference settings stored with the model ({} for none); plane_keep: the
+    stage2_net: a two-stage model's crop network (stage 2) or None; stage2: its part of the file (configs, classes,
+    ``colour_levels``: each class's colour level in its training file or None, ``infer.colour_level``) without the
+    weights; geometry_config: inference settings stored with the model ({} for none); plane_keep: the
     share of a frame's dominant plane that the network's sampling keeps, as it was trained (1 for models trained
     before that setting); num_points and ``model_config.npoints[0]`` (the keypoints the network predicts at) are
     the inference's, which a model file's sampling settings (:class:`SamplingConfig`) may set above the training's;
@@ -173,6 +175,46 @@ def add_surfaces(path: str | Path, label_path: str | Path, out: str | Path | Non
         points.append(table["surface_points"][k])
         normals.append(table["surface_normals"][k])
     part["objects"] = {**objects, "surface_points": points, "surface_normals": normals}
+    target = Path(out) if out is not None else Path(path)
+    atomic_torch_save(payload, target)
+    return target
+
+
+def add_colour_levels(path: str | Path, label_path: str | Path, out: str | Path | None = None,
+                      enable: bool = True) -> Path:
+    """Write a two-stage model file whose stage 2 also carries each object's colour level in a label file of its
+    training data (:func:`detector.stage2.colour_level.colour_levels`: what ``infer.colour_level`` needs), for a model
+    trained before ``detector train`` stored them; with ``enable`` its stored inference settings turn
+    ``colour_level`` on. The weights and every other field stay as they were. label_path: a capture of the same
+    objects (the same diameters: the same meshes) made as the stage-2 training file was (the level is the renderer's,
+    so the training file itself or another capture of its recipe). out: the file written (atomically; None:
+    ``path`` itself)."""
+    payload = read_checkpoint(path)
+    if payload.get("version") != TWO_STAGE_VERSION or "stage1" not in payload or "stage2" not in payload:
+        raise DetectorError(f"{path} is not a two-stage model file (model.pt that `detector train` writes)")
+    part = payload["stage2"]
+    if (part.get("normalisation") or {}).get("colour") == "none":
+        raise DetectorError(f"{path}'s stage 2 reads no colour: it has no colour level to keep")
+    with argen_errors():
+        with LabelFile(label_path) as lf:
+            table = object_table_dict(lf.objects)
+    dia = {int(i): float(d) for i, d in zip(table["ids"], table["diameters"])}
+    model_dia = {int(i): float(d) for i, d in zip(payload["stage1"]["objects"]["ids"],
+                                                  payload["stage1"]["objects"]["diameters"])}
+    ids = [int(i) for i in part["class_ids"]]
+    for i in ids:
+        if i not in dia:
+            raise DetectorError(f"object {i} of {path} is not in {label_path}")
+        if not same_mesh(model_dia[i], dia[i]):
+            raise DetectorError(f"object {i}'s diameter is {dia[i]:.4f} m in {label_path} and {model_dia[i]:.4f} m "
+                                f"in {path}: not the same mesh")
+    with argen_errors():
+        levels = colour_levels(label_path, ids)
+    if all(v is None for v in levels):
+        raise DetectorError(f"{label_path} holds no instance of the model's objects with enough labelled points")
+    part["colour_levels"] = levels
+    if enable:
+        part["infer_config"] = {**(part.get("infer_config") or {}), "colour_level": True}
     target = Path(out) if out is not None else Path(path)
     atomic_torch_save(payload, target)
     return target

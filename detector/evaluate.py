@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import sys
 import time
-from dataclasses import asdict, replace
+from dataclasses import asdict, is_dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -65,7 +65,9 @@ def evaluate(predictor: Predictor, label_path: str | Path, out_dir: str | Path, 
     with the reason in summary["bop19"]["skipped"] when that folder is gone or cannot be scored. sampling: how the
     predictor's network sampled a frame (e.g. ``{"density": 1.0, "passes": 2, "points": 4096, "keypoints": 1024}``:
     points and keypoints of each pass), recorded
-    as summary["sampling"] (None: not recorded).
+    as summary["sampling"] (None: not recorded). A stage 2's inference settings (the ``cfg`` of a
+    :class:`detector.stage2.poser.CropPoser` ``poser``) are recorded as summary["infer"] (None: none, or a poser
+    that does not carry them).
     Returns the summary written to report.json (per-object ADD accuracies at 10/15/30 % without and with ICP,
     F1 at 15 %, mean ms per stage, fps, and with ICP how many detections had their ICP pose accepted, rejected
     (it did not fit better, so the unrefined pose was kept) or skipped (too few points): "icp_refinement"; "bop19":
@@ -143,7 +145,8 @@ def evaluate(predictor: Predictor, label_path: str | Path, out_dir: str | Path, 
     if "skipped" not in scores:  # how the official toolkit can check these figures (report.md says it)
         scores["toolkit_dataset"] = toolkit_name if csv_name.split("_", 1)[1].startswith(f"{toolkit_name}-") else None
     return _finish(gt_rows, counts, times, table, cfg, keys, icp, str(label_path), num_frames, bop_rows, out_dir,
-                   device, icp_status if icp else None, csv_name, scores, sampling)
+                   device, icp_status if icp else None, csv_name, scores, sampling,
+                   asdict(poser.cfg) if is_dataclass(getattr(poser, "cfg", None)) else None)
 
 
 def bop19_summary(bop_rows: list[dict], images: set[tuple[int, int]], root, split: str, argen_json: str = "",
@@ -167,7 +170,7 @@ def bop19_summary(bop_rows: list[dict], images: set[tuple[int, int]], root, spli
 
 
 def _finish(gt_rows, counts, times, table, cfg, keys, icp, label_file, num_frames, bop_rows, out_dir, device,
-            icp_status=None, csv_name="argen_argen-test.csv", bop19=None, sampling=None) -> dict:
+            icp_status=None, csv_name="argen_argen-test.csv", bop19=None, sampling=None, infer=None) -> dict:
     """Aggregate per-instance rows into the summary, write the report files and return the summary."""
     objs, curves = [], {}
     for m, oid in enumerate(table.ids.tolist()):
@@ -199,7 +202,7 @@ def _finish(gt_rows, counts, times, table, cfg, keys, icp, label_file, num_frame
     timing_ms = {s: 1000 * float(np.mean([t.get(s, 0.0) for t in times])) if times else 0.0 for s in stages}
     timing_ms["total"] = 1000 * float(np.mean([t["total"] for t in times])) if times else 0.0
     summary = {"label_file": label_file, "num_frames": num_frames, "icp": icp, "config": asdict(cfg),
-               "sampling": sampling,
+               "sampling": sampling, "infer": infer,
                "objects": objs, "mean": mean, "f1": f1, "timing_ms": timing_ms,
                "fps": 1000.0 / timing_ms["total"] if timing_ms["total"] > 0 else float("inf"),
                "device": device, "bop_csv": csv_name, "icp_refinement": icp_status,

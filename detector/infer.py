@@ -274,5 +274,11 @@ def checkpoint_poser(ckpt, objects: ObjectInfo, device: str = "cpu", seed: int =
         raise DetectorError(f"the checkpoint's stage-2 settings are not understood ({exc})") from None
     if sets:
         cfg = apply_set_options(cfg, sets, "--set infer")  # types checked; PoserConfig checks the ranges
+    levels = p.get("colour_levels")
+    reads_colour = (p.get("normalisation") or {}).get("colour") != "none"
+    if cfg.colour_level and reads_colour and levels is None:
+        raise DetectorError("infer.colour_level needs the colour levels of the model's training frames, which this "
+                            "model file lacks (README: detector.checkpoint.add_colour_levels adds them)")
     return CropPoser(ckpt.stage2_net, p["class_ids"], objects, CropConfig.from_dict(p["crop_config"]),
-                     p["normalisation"], cfg, device, seed, support, floor)
+                     p["normalisation"], cfg, device, seed, support, floor,
+                     dict(zip((int(i) for i in p["class_ids"]), levels)) if levels is not None else None)

@@ -34,6 +34,7 @@ from detector.data.frames import FrameSource
 from detector.geometry.types import GeometryConfig
 from detector.stage1.sampling import SamplingConfig
 from detector.stage1.train import RESUME_FREE_KEYS, make_config, saved_run_settings, train
+from detector.stage2.colour_level import colour_levels
 from detector.stage2.poser import PoserConfig
 from detector.stage2.train import STAGE2_RESUME_FREE_KEYS, load_stage2_config, saved_settings, train_stage2
 from detector.training.checkpoint_file import read_checkpoint
@@ -188,7 +189,10 @@ def train_two_stage(cfg: TwoStageConfig, train_path: str | Path, out_dir: str | 
     part = read_checkpoint(d2 / "last.pt")["stage2"]
     if list(part["class_ids"]) != list(stage1["class_ids"]):
         raise DetectorError(f"the stages learned different objects ({stage1['class_ids']} vs {part['class_ids']})")
-    return save_two_stage(out_dir / "model.pt", stage1, {**part, "infer_config": infer},
+    # each object's colour level in stage 2's training file, for infer.colour_level (a network without colour: none)
+    levels = None if (part.get("normalisation") or {}).get("colour") == "none" else \
+        colour_levels(train_path, part["class_ids"])
+    return save_two_stage(out_dir / "model.pt", stage1, {**part, "infer_config": infer, "colour_levels": levels},
                           {"geometry_config": geometry, "sampling_config": cfg.resolved_sampling(),
                            "train_file": str(train_path)})
 

@@ -828,6 +828,24 @@ def test_two_stage_train_resume_eval_predict(labels, tmp_path):
     ck = load_checkpoint(out / "model.pt")
     assert ck.stage2_net is not None and ck.geometry_config["centre_votes"] and ck.geometry_config["tau"] == tau
     assert ck.stage2["class_ids"] == ck.class_ids
+    # stage 2 keeps each object's colour level in its training file, and the default inference uses it
+    from detector.stage2.colour_level import colour_levels
+    assert ck.stage2["colour_levels"] == colour_levels(labels, ck.class_ids)
+    assert ck.stage2["infer_config"]["colour_level"] is True
+    from detector.checkpoint import add_colour_levels
+    from detector.infer import checkpoint_objects, checkpoint_poser
+    from detector.training.checkpoint_file import atomic_torch_save, read_checkpoint
+    payload = read_checkpoint(out / "model.pt")
+    payload["stage2"]["colour_levels"] = None  # a model file written before the levels were kept
+    atomic_torch_save(payload, tmp_path / "older.pt")
+    older = load_checkpoint(tmp_path / "older.pt")
+    with pytest.raises(DetectorError, match="add_colour_levels"):
+        checkpoint_poser(older, checkpoint_objects(older)[0])
+    assert checkpoint_poser(older, checkpoint_objects(older)[0], sets={"colour_level": False}) is not None
+    add_colour_levels(tmp_path / "older.pt", labels)
+    assert load_checkpoint(tmp_path / "older.pt").stage2["colour_levels"] == ck.stage2["colour_levels"]
+    with pytest.raises(DetectorError, match="not a two-stage model file"):
+        add_colour_levels(out / "stage2" / "last.pt", labels)
     with LabelFile(labels) as lf:  # the working volume its points came from, for predict
         assert ck.extra["max_depth"] == pytest.approx(lf.attrs["max_depth"]) and ck.extra["max_depth"] > 0
         frame = lf.frame(0)
@@ -1481,3 +1499,107 @@ def test_part_turns_count_odd_part_points_and_need_a_part():
     assert part.crop_symmetries(np.eye(4)[None], np.vstack([body, handle[:4]])).shape == (4, 4, 4)
     assert PartTurns.build(np.eye(4)[None], np.zeros((0, 4, 4)), odd, 0.1) is None
     assert PartTurns.build(np.eye(4)[None], np.stack([np.eye(4)]), np.zeros((0, 3)), 0.1) is None
+
+
+def test_colour_levels_are_the_median_of_each_objects_instance_means(labels):
+    """An object's level is the median over its instances (with enough labelled points) of their points' mean colour;
+    an object the file does not show has none."""
+    from detector.stage2.colour_level import colour_levels
+
+    with LabelFile(labels) as lf:
+        ids = [int(i) for i in lf.objects.ids]
+        means: dict[int, list] = {i: [] for i in ids}
+        for k in range(lf.num_frames):
+            f = lf.frame(k)
+            for g, oid in enumerate(f.instances.obj_id):
+                rows = np.flatnonzero(f.instance == g)
+                if len(rows) >= 100:
+                    means[int(oid)].append(f.features[rows, 3:6].astype(np.float64).mean(0))
+    got = colour_levels(labels, [*ids, 999])
+    assert got[-1] is None
+    for i, level in zip(ids, got):
+        assert (level is None) == (not means[i])
+        if means[i]:
+            assert np.allclose(level, np.median(means[i], axis=0))
+            assert all(0 <= v <= 1 for v in level)
+
+
+def test_level_gain_undoes_an_exposure_within_its_bounds():
+    from detector.stage2.colour_level import GAIN_BOUNDS, MIN_POINTS, level_gain, levelled
+
+    rng = np.random.default_rng(0)
+    seen = rng.uniform(0.1, 0.6, (200, 3))
+    level = [0.3, 0.4, 0.2]
+    g = level_gain(seen, level)
+    assert np.isclose(g, np.mean(level) / seen.mean())
+    for e in (0.7, 0.8, 1.3):  # colours x e: 1 / e times the gain, and the levelled colours are the same
+        assert np.isclose(level_gain(seen * e, level), g / e)
+        feats = np.concatenate([rng.normal(size=(200, 3)), seen * e, rng.normal(size=(200, 3))], 1)
+        assert np.allclose(levelled(feats, level_gain(seen * e, level))[:, 3:6], np.clip(seen * g, 0, 1), atol=1e-6)
+        assert np.array_equal(levelled(feats, 1.0), feats.astype(np.float32))
+    # a level that far off is not applied (more likely clutter than an exposure)
+    assert level_gain(seen * g / (GAIN_BOUNDS[1] * 1.01), level) == 1.0
+    assert np.isclose(level_gain(seen * g / (GAIN_BOUNDS[1] * 0.99), level), GAIN_BOUNDS[1] * 0.99)
+    assert level_gain(seen * g / (GAIN_BOUNDS[0] * 0.99), level) == 1.0
+    assert level_gain(seen[:MIN_POINTS - 1], level) == 1.0 and level_gain(seen, None) == 1.0
+    assert level_gain(seen * 0, level) == 1.0
+
+
+class RecordingTrueCropNet(TrueCropNet):
+    """TrueCropNet that keeps the network input of every call (its foreground does not depend on colour)."""
+
+    def __init__(self, *args):
+        super().__init__(*args)
+        self.inputs = []
+
+    def forward(self, features, cls):
+        self.inputs.append(features.clone())
+        return super().forward(features, cls)
+
+
+def test_colour_level_gives_a_darker_cameras_later_crops_the_colours_of_the_brighter_one(labels):
+    """With ``colour_level``, the crops after the first are cut from colours brought to the object's training level by
+    the gain its first crop's foreground shows: a frame whose colours are all x0.8 (another camera's exposure) feeds
+    the network the same later crops as the frame itself, and the same poses come out. Without it they differ."""
+    from detector.geometry.types import ObjectInfo
+    from detector.stage2.colour_level import colour_levels
+    from detector.stage2.poser import CropPoser, PoserConfig
+
+    cfg = CropConfig(num_points=256)
+    with LabelFile(labels) as lf:
+        tab = lf.objects
+        objs = ObjectInfo.from_table(tab)
+        ids = [int(i) for i in tab.ids]
+        levels = dict(zip(ids, colour_levels(labels, ids)))
+        f = lf.frame(0)
+        inst = f.instances
+        dets = [centre_detection(objs, int(inst.obj_id[g]), inst.control_points[g][8])
+                for g in range(len(inst)) if inst.num_points[g] >= 100]
+        assert len(dets) >= 2
+        darker = np.array(f.features, copy=True)
+        darker[:, 3:6] *= 0.8
+        seen = {}
+        for on in (True, False):
+            for name, feats in (("frame", f.features), ("darker", darker)):
+                net = RecordingTrueCropNet(f, tab, ids, cfg)
+                poser = CropPoser(net, ids, objs, cfg, NORMALISATION, PoserConfig(colour_level=on, samples=2), seed=4,
+                                  colour_levels=levels)
+                seen[on, name] = (net.inputs, poser(dets, feats))
+        for on in (True, False):
+            (first, later), out = seen[on, "frame"]
+            (first_d, later_d), out_d = seen[on, "darker"]
+            assert torch.equal(first[..., :3], first_d[..., :3]) and not torch.allclose(first, first_d)
+            assert torch.equal(later[..., :3], later_d[..., :3])
+            assert torch.allclose(later, later_d, atol=1e-4) == on
+        (_, later), out = seen[True, "frame"]
+        (_, later_d), out_d = seen[True, "darker"]
+        assert len(out) == len(out_d) == len(dets)
+        for a, b in zip(out, out_d):
+            assert np.allclose(a.R, b.R) and np.allclose(a.t, b.t) and a.score == b.score
+        # a network without colour input, or no levels: the option changes nothing
+        for norm, lev in (({**NORMALISATION, "colour": "none"}, levels), (NORMALISATION, None)):
+            net = RecordingTrueCropNet(f, tab, ids, cfg)
+            CropPoser(net, ids, objs, cfg, norm, PoserConfig(colour_level=True), colour_levels=lev)(dets, darker)
+            plain = RecordingTrueCropNet(f, tab, ids, cfg)
+            CropPoser(plain, ids, objs, cfg, norm, PoserConfig())(dets, darker)
+            assert all(torch.equal(x, y) for x, y in zip(net.inputs, plain.inputs))

@@ -34,6 +34,10 @@ def test_shipped_model_is_small_and_complete():
     for pts, normals in surfaces.values():
         assert pts.shape == normals.shape and len(pts) >= 1000
         assert np.allclose(np.linalg.norm(normals, axis=1), 1, atol=1e-4)
+    # stage 2 reads colour, and brings a frame's to each object's level in its training frames (infer.colour_level)
+    assert ck.stage2["infer_config"]["colour_level"] is True
+    levels = ck.stage2["colour_levels"]
+    assert len(levels) == 8 and all(len(v) == 3 and all(0 < c < 1 for c in v) for v in levels)
 
 
 def test_stage2_inference_settings_can_be_changed_for_a_run():

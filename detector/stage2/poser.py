@@ -7,6 +7,7 @@ again around the new centre and the pose recomputed (``recentre``), which forgiv
 from __future__ import annotations
 
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -17,6 +18,7 @@ from detector.geometry.icp import fit_residuals, fit_rms, support_radius, surfac
 from detector.geometry.kabsch import ransac_draws, ransac_kabsch
 from detector.geometry.types import Detection
 from detector.geometry.workers import map_threads
+from detector.stage2.colour_level import level_gain, levelled
 from detector.stage2.crops import CropConfig, ball_rows, crop_input, roll_crop_input, sample_crop
 
 
@@ -33,7 +35,10 @@ class PoserConfig:
     foreground points best (trimmed point-to-plane RMS over the best ``verify_trim`` share, as ICP's acceptance
     test); 1 keeps RANSAC's own choice; fit_points: RANSAC scores its hypotheses, and the verification measures
     fits, on at most this many of the foreground points (a random subset; with several ``samples`` the foreground
-    is that many times larger, and so would their cost be); the refits use them all."""
+    is that many times larger, and so would their cost be); the refits use them all; colour_level: the crops after the
+    first are cut from the frame's colours brought to the level the asked object had in the training frames, by the
+    gain its first crop's foreground shows (:mod:`detector.stage2.colour_level`: another camera's exposure; needs the
+    model's ``colour_levels``, no effect on a network without colour input or with ``recentre`` 0)."""
 
     fg_threshold: float = 0.5
     inlier: float = 0.05
@@ -45,6 +50,7 @@ class PoserConfig:
     verify_trim: float = 0.7
     fit_points: int = 256
     roll_deg: float = 0.0
+    colour_level: bool = False
 
     def __post_init__(self):
         counts = {"hypotheses": 1, "samples": 1, "verify": 1, "recentre": 0, "min_fg": 3, "fit_points": 3}
@@ -86,12 +92,13 @@ def subset_rolls(samples: int, roll_deg: float) -> np.ndarray:
 @torch.no_grad()
 def crop_predictions(net, features: np.ndarray, centres: np.ndarray, classes: np.ndarray, diameters: np.ndarray,
                      crop_cfg: CropConfig, normalisation: dict, seed: int = 0, device="cpu", samples: int = 1,
-                     roll_deg: float = 0.0):
+                     roll_deg: float = 0.0, gains: Sequence[float] | None = None):
     """Run the crop network on ``samples`` point subsets (:func:`crop_subsets`) of one crop per centre, subset k
     rolled about the camera ray through the centre by :func:`subset_rolls`' k-th angle.
 
     features: (N,9) the frame's label features; centres: (D,3) metres; classes: (D,) class indices;
-    diameters: (D,) metres; roll_deg: degrees. Returns a list of D (rows (m,) into features, fg probability (m,),
+    diameters: (D,) metres; roll_deg: degrees; gains: (D,) each crop's colours are first multiplied by its gain
+    (:func:`detector.stage2.colour_level.levelled`; None: as they are). Returns a list of D (rows (m,) into features, fg probability (m,),
     model coordinates (m,3) metres), the subsets' predictions one after the other (m = samples x
     ``crop_cfg.num_points``), or None where the crop holds fewer than ``crop_cfg.min_points`` points.
     """
@@ -104,8 +111,12 @@ def crop_predictions(net, features: np.ndarray, centres: np.ndarray, classes: np
         if len(rows) < crop_cfg.min_points:
             continue
         for sub, roll in zip(crop_subsets(rows, crop_cfg.num_points, samples, rng), rolls):
-            batch.append(roll_crop_input(crop_input(features, sub, c, crop_cfg.radius * dia, normalisation), c,
-                                         roll))
+            if gains is None or gains[k] == 1.0:
+                feats = crop_input(features, sub, c, crop_cfg.radius * dia, normalisation)
+            else:
+                feats = crop_input(levelled(np.asarray(features)[sub], gains[k]), np.arange(len(sub)), c,
+                                   crop_cfg.radius * dia, normalisation)
+            batch.append(roll_crop_input(feats, c, roll))
             keep.append((k, sub))
     if not batch:
         return out
@@ -182,22 +193,26 @@ class CropPoser:
     them) and ``alternatives`` = the crop's other verified hypotheses, best fit first (ICP may start from them). A detection whose crop yields no pose is dropped. Adds "stage2" seconds. The score is the share of the
     foreground points that the model surface under the pose explains to within ``support_distance`` of the
     diameter, but at least ``support_floor`` metres (:func:`detector.geometry.icp.surface_support`): it tells wrong poses and false detections from right ones
-    far better than vote or inlier shares (measured on a validation capture).
+    far better than vote or inlier shares (measured on a validation capture). colour_levels: {object id: (3,) RGB
+    level in the training frames or None}, the model's (``cfg.colour_level``); None: none known (the option then has
+    no effect: :func:`detector.infer.checkpoint_poser` refuses it for a model file without them).
     """
 
     def __init__(self, net, class_ids: list[int], objects, crop_cfg: CropConfig, normalisation: dict,
                  cfg: PoserConfig | None = None, device="cpu", seed: int = 0, support_distance: float = 0.02,
-                 support_floor: float = 0.0):
+                 support_floor: float = 0.0, colour_levels: dict | None = None):
         self.net, self.class_ids, self.objects = net, list(class_ids), objects
         self.support_distance, self.support_floor = support_distance, support_floor
         self.crop_cfg, self.normalisation, self.cfg = crop_cfg, normalisation, cfg or PoserConfig()
         self.device, self.seed = device, seed
+        self.colour_levels = colour_levels if self.cfg.colour_level and normalisation.get("colour") != "none" \
+            else None
 
-    def _run(self, features, centres, oids, samples: int = 1):
+    def _run(self, features, centres, oids, samples: int = 1, gains=None):
         classes = np.array([self.class_ids.index(o) for o in oids], np.int64)
         dia = np.array([self.objects.diameters[o] for o in oids], np.float64)
         return crop_predictions(self.net, features, np.asarray(centres), classes, dia, self.crop_cfg,
-                                self.normalisation, self.seed, self.device, samples, self.cfg.roll_deg)
+                                self.normalisation, self.seed, self.device, samples, self.cfg.roll_deg, gains)
 
     def __call__(self, detections: list[Detection], features: np.ndarray, timings: dict | None = None
                  ) -> list[Detection]:
@@ -207,17 +222,21 @@ class CropPoser:
         rng = np.random.default_rng(self.seed)
         centres = [d.control_points[8] for d in dets]
         results: list = [None] * len(dets)  # (R, t, foreground rows of features, other hypotheses) of each detection
+        gains = [1.0] * len(dets)  # each detection's colour gain for its crops after the first (cfg.colour_level)
         for it in range(1 + self.cfg.recentre):
             todo = [k for k in range(len(dets)) if it == 0 or results[k] is not None]
             if not todo:
                 break
             preds = self._run(features, [centres[k] for k in todo], [dets[k].obj_id for k in todo],
-                              1 if it == 0 else self.cfg.samples)
+                              1 if it == 0 else self.cfg.samples, [gains[k] for k in todo])
             jobs = []  # (detection, its crop's rows, fg probability, model coordinates, surface, draws)
             for k, pred in zip(todo, preds):
                 if pred is None:
                     continue
                 rows, prob, mxyz = pred
+                if it == 0 and self.colour_levels is not None:  # the level the frame shows of the asked object
+                    fg_rows = np.unique(rows[prob >= self.cfg.fg_threshold])
+                    gains[k] = level_gain(np.asarray(features)[fg_rows, 3:6], self.colour_levels.get(dets[k].obj_id))
                 surface = self.objects.surface(dets[k].obj_id) if self.cfg.verify > 1 else None
                 # the random choices in the crops' order here, the fits on threads: the results of one thread
                 draws = pose_draws(int(np.count_nonzero(prob >= self.cfg.fg_threshold)), self.cfg, rng,

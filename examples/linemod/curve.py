@@ -67,7 +67,8 @@ def curve_points(run: Path, labels: Path, frames: int | None, stage1_minutes: fl
                 continue
             seen.add(part["step"])
             path = save_two_stage(Path(tmp) / "model.pt", stage1_part,
-                                  {**part, "infer_config": model["stage2"]["infer_config"]}, model["extra"])
+                                  {**part, "infer_config": model["stage2"]["infer_config"],
+                                   "colour_levels": model["stage2"].get("colour_levels")}, model["extra"])
             ckpt = load_checkpoint(path)
             s = evaluate(network_predictor(ckpt), labels, Path(tmp) / "report", icp=True,
                          cfg=checkpoint_geometry_config(ckpt, None, True), frames=list(range(n)),

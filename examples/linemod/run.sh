@@ -50,14 +50,15 @@ train_beside() {
 }
 # eval_run RUN LABELS REPORT "KEY=VALUE ..." [EVAL OPTIONS]: RUN's detector eval --icp with those --set values into
 # the folder REPORT, unless it holds a report that records its farthest point sampling, its surface-continuation
-# setting and its one-detection-a-place setting (one written before the tree-based FPS, 2026-12-06, or before those
-# two, 2026-12-07, does not, and may be of runs/lm8's inference of then: it is made again)
+# setting, its one-detection-a-place setting and its stage-2 settings (one written before the tree-based FPS,
+# 2026-12-06, or before those three, 2026-12-07, does not, and may be of runs/lm8's inference of then: it is made
+# again)
 eval_run() {
   local r=$1 data=$2 rep=$3
   sets_of "$4"
   shift 4
   { grep -qs '"fps": "' "$rep/report.json" && grep -qs '"continuation_check"' "$rep/report.json" &&
-    grep -qs '"nms_across_objects"' "$rep/report.json"; } ||
+    grep -qs '"nms_across_objects"' "$rep/report.json" && grep -qs '"infer": ' "$rep/report.json"; } ||
     $D eval "$r/model.pt" "$data" --out "$rep" --icp --quiet "${SETS[@]}" "$@"
 }
 # eval_captures RUN [SUFFIX EVAL OPTIONS...]: RUN/model.pt with ICP on both test and both validation captures, into
@@ -144,6 +145,9 @@ fi
 #     (README's walk-through). Evaluated on both test and both validation captures (reports/lm8_offboard-CAPTURE)
 #     and the real frames without LineMOD objects
 stage1_beside runs/lm8 runs/lm8_offboard "$OUT/lm_train.h5" "{}" "$OUT/lm_offboard.h5"
+#    (a model file of this folder written before 2026-12-07's colour levels is written again, in seconds, with them
+#    and today's inference defaults: both stages are done)
+$D train "$OUT/lm_train.h5" --stage1-data "$OUT/lm_offboard.h5" --out runs/lm8_offboard --resume --quiet
 eval_captures runs/lm8_offboard
 false_alarms runs/lm8_offboard/model.pt
 #    and without one detection a place (`geometry.nms_across_objects=false`, its inference until 2026-12-07's last
@@ -164,6 +168,23 @@ done
 #    capture, three on the LC-HF-style one
 .venv/bin/python bench/probe_colour.py runs/lm8_offboard/model.pt "$OUT/lm_val.h5"
 .venv/bin/python bench/probe_colour.py runs/lm8_offboard/model.pt "$OUT/lchf_val.h5" --change none darker warm
+#    stage 2's colour level (`infer.colour_level`, the default since 2026-12-07's last change; RESULTS.md, "Stage 2's
+#    colour level"): without it on every capture and seed above, and under another camera's colours with and without it
+eval_captures runs/lm8_offboard _flat --set infer.colour_level=false
+eval_run runs/lm8_offboard "$OUT/lm_test.h5" reports/lm8_offboard_flat_test_seed1 "infer.colour_level=false" --seed 1
+for seed in 1 2; do
+  eval_run runs/lm8_offboard "$OUT/lchf_test.h5" "reports/lm8_offboard_flat_lchf_seed$seed" "infer.colour_level=false" \
+    --seed $seed
+done
+.venv/bin/python bench/probe_colour.py runs/lm8_offboard/model.pt "$OUT/lm_val.h5" --set infer.colour_level=false
+.venv/bin/python bench/probe_colour.py runs/lm8_offboard/model.pt "$OUT/lchf_val.h5" --change none darker warm \
+  --set infer.colour_level=false
+for v in "" "--set infer.colour_level=false"; do
+  for d in lm_test lchf_test; do
+    .venv/bin/python bench/probe_colour.py runs/lm8_offboard/model.pt "$OUT/$d.h5" --change darker brighter $v
+  done
+done
+false_alarms runs/lm8_offboard/model.pt --set infer.colour_level=false
 #    and a lower score threshold (0.6, 0.55 instead of the model's 0.65) on both validation captures
 for ms in 0.6 0.55; do
   for d in lm_val lchf_val; do eval_run runs/lm8_offboard "$OUT/$d.h5" "reports/lm8_offboard_ms$ms-$d" "" --min-score $ms; done

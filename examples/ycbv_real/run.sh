@@ -351,4 +351,11 @@ if [ "${APART:-0}" = 1 ]; then
   done
   .venv/bin/python examples/ycbv_real/seeds.py "$REP/seeds_apart"
 fi
+# 6m. how bright the real sensor shows the objects against the renderer (RESULTS.md, lm8's "Stage 2's colour level"):
+#     each object's colour level (the median over its instances of their visible points' mean colour) in the real
+#     frames and in the training capture, and the ratio of their mean luminances
+.venv/bin/python -c "import sys, numpy as np; from detector.stage2.colour_level import colour_levels as c; \
+ids = [8, 14, 21]; real, sim = c(sys.argv[1], ids), c(sys.argv[2], ids); \
+[print(f'object {i}: real {np.round(a, 3)} simulated {np.round(b, 3)} luminance x{np.mean(a) / np.mean(b):.2f}') \
+ for i, a, b in zip(ids, real, sim)]" "$OUT/ycbv_real.h5" "$OUT/ycbv_train.h5"
 cat "$T"
