@@ -98,9 +98,9 @@ def crop_predictions(net, features: np.ndarray, centres: np.ndarray, classes: np
 
     features: (N,9) the frame's label features; centres: (D,3) metres; classes: (D,) class indices;
     diameters: (D,) metres; roll_deg: degrees; gains: (D,) each crop's colours are first multiplied by its gain
-    (:func:`detector.stage2.colour_level.levelled`; None: as they are). Returns a list of D (rows (m,) into features, fg probability (m,),
-    model coordinates (m,3) metres), the subsets' predictions one after the other (m = samples x
-    ``crop_cfg.num_points``), or None where the crop holds fewer than ``crop_cfg.min_points`` points.
+    (:func:`detector.stage2.colour_level.levelled`; None: as they are). Returns a list of D (rows (m,) into
+    features, fg probability (m,), model coordinates (m,3) metres), the subsets' predictions one after the other
+    (m = samples x ``crop_cfg.num_points``), or None where the crop holds fewer than ``crop_cfg.min_points`` points.
     """
     xyz = np.asarray(features[:, :3], np.float64)
     rng = np.random.default_rng(seed)
