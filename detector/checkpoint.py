@@ -12,6 +12,7 @@ from typing import Any
 import torch
 
 from argen.h5 import LabelFile
+from detector.data.augment import reads_colour
 from detector.data.frames import object_table_dict
 from detector.errors import DetectorError, argen_errors
 from detector.geometry.types import same_mesh
@@ -140,6 +141,25 @@ def save_two_stage(path: str | Path, stage1: dict, stage2: dict, extra: dict | N
     return path
 
 
+def label_rows(objects: dict, ids, table: dict, path, label_path) -> list[int]:
+    """The row of each of ``ids`` in a label file's object ``table`` (:func:`object_table_dict`), each checked to be
+    the model's object: ``objects`` is the model file's object table (its ``ids`` and ``diameters``, metres), the same
+    mesh has the same diameter. path / label_path name the two files in the one-line DetectorError of an object the
+    label file lacks or holds with another mesh."""
+    where = {int(i): k for k, i in enumerate(table["ids"])}
+    model = {int(i): float(d) for i, d in zip(objects["ids"], objects["diameters"])}
+    rows = []
+    for i in ids:
+        k = where.get(int(i))
+        if k is None:
+            raise DetectorError(f"object {i} of {path} is not in {label_path}")
+        if not same_mesh(model[int(i)], table["diameters"][k]):
+            raise DetectorError(f"object {i}'s diameter is {float(table['diameters'][k]):.4f} m in {label_path} and "
+                                f"{model[int(i)]:.4f} m in {path}: not the same mesh")
+        rows.append(k)
+    return rows
+
+
 def add_surfaces(path: str | Path, label_path: str | Path, out: str | Path | None = None) -> Path:
     """Write a model file whose object table also carries the label file's surface samples and their normals
     (``surface_points`` (S,3) metres and ``surface_normals`` (S,3) unit, per object: what the surface-continuation
@@ -160,18 +180,12 @@ def add_surfaces(path: str | Path, label_path: str | Path, out: str | Path | Non
     with argen_errors():
         with LabelFile(label_path) as lf:
             table = object_table_dict(lf.objects)
-    where = {int(i): k for k, i in enumerate(table["ids"])}
+    rows = label_rows(objects, objects["ids"], table, path, label_path)
     points, normals = [], []
-    for i, dia in zip(objects["ids"], objects["diameters"]):
-        k = where.get(int(i))
-        if k is None:
-            raise DetectorError(f"object {i} of {path} is not in {label_path}")
+    for i, k in zip(objects["ids"], rows):
         if k >= len(table["surface_points"]) or not len(table["surface_points"][k]):
             raise DetectorError(f"{label_path} carries no surface normals of object {i} (label files written before "
                                 "2026-12-07 lack them: run argen label again)")
-        if not same_mesh(dia, table["diameters"][k]):
-            raise DetectorError(f"object {i}'s diameter is {float(table['diameters'][k]):.4f} m in {label_path} and "
-                                f"{float(dia):.4f} m in {path}: not the same mesh")
         points.append(table["surface_points"][k])
         normals.append(table["surface_normals"][k])
     part["objects"] = {**objects, "surface_points": points, "surface_normals": normals}
@@ -193,21 +207,13 @@ def add_colour_levels(path: str | Path, label_path: str | Path, out: str | Path 
     if payload.get("version") != TWO_STAGE_VERSION or "stage1" not in payload or "stage2" not in payload:
         raise DetectorError(f"{path} is not a two-stage model file (model.pt that `detector train` writes)")
     part = payload["stage2"]
-    if (part.get("normalisation") or {}).get("colour") == "none":
+    if not reads_colour(part.get("normalisation")):
         raise DetectorError(f"{path}'s stage 2 reads no colour: it has no colour level to keep")
     with argen_errors():
         with LabelFile(label_path) as lf:
             table = object_table_dict(lf.objects)
-    dia = {int(i): float(d) for i, d in zip(table["ids"], table["diameters"])}
-    model_dia = {int(i): float(d) for i, d in zip(payload["stage1"]["objects"]["ids"],
-                                                  payload["stage1"]["objects"]["diameters"])}
     ids = [int(i) for i in part["class_ids"]]
-    for i in ids:
-        if i not in dia:
-            raise DetectorError(f"object {i} of {path} is not in {label_path}")
-        if not same_mesh(model_dia[i], dia[i]):
-            raise DetectorError(f"object {i}'s diameter is {dia[i]:.4f} m in {label_path} and {model_dia[i]:.4f} m "
-                                f"in {path}: not the same mesh")
+    label_rows(payload["stage1"]["objects"], ids, table, path, label_path)
     with argen_errors():
         levels = colour_levels(label_path, ids)
     if all(v is None for v in levels):

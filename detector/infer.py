@@ -17,6 +17,7 @@ import numpy as np
 
 from argen.features import check_max_depth
 from detector.config import apply_set_options, parse_set_options
+from detector.data.augment import reads_colour
 from detector.data.plane import dominant_plane
 from detector.errors import DetectorError, argen_errors
 from detector.geometry.colour_check import colour_checked
@@ -142,8 +143,8 @@ def missing_surfaces(cfg: GeometryConfig, objects: ObjectInfo, model: str) -> st
 def colour_networks(ckpt) -> list[str]:
     """The stages of a model whose networks take colour input: "stage 1", "stage 2" ([] for networks that see
     geometry only). ckpt: a loaded checkpoint (:func:`detector.checkpoint.load_checkpoint`)."""
-    out = [] if ckpt.normalisation.get("colour") == "none" else ["stage 1"]
-    if ckpt.stage2 is not None and (ckpt.stage2.get("normalisation") or {}).get("colour") != "none":
+    out = ["stage 1"] if reads_colour(ckpt.normalisation) else []
+    if ckpt.stage2 is not None and reads_colour(ckpt.stage2.get("normalisation")):
         out.append("stage 2")
     return out
 
@@ -275,8 +276,7 @@ def checkpoint_poser(ckpt, objects: ObjectInfo, device: str = "cpu", seed: int =
     if sets:
         cfg = apply_set_options(cfg, sets, "--set infer")  # types checked; PoserConfig checks the ranges
     levels = p.get("colour_levels")
-    reads_colour = (p.get("normalisation") or {}).get("colour") != "none"
-    if cfg.colour_level and reads_colour and levels is None:
+    if cfg.colour_level and reads_colour(p.get("normalisation")) and levels is None:
         raise DetectorError("infer.colour_level needs the colour levels of the model's training frames, which this "
                             "model file lacks (README: detector.checkpoint.add_colour_levels adds them)")
     return CropPoser(ckpt.stage2_net, p["class_ids"], objects, CropConfig.from_dict(p["crop_config"]),

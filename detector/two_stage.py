@@ -30,6 +30,7 @@ import yaml
 from detector.checkpoint import save_two_stage
 from detector.config import config_to_dict, load_preset, load_yaml
 from detector.errors import DetectorError
+from detector.data.augment import reads_colour
 from detector.data.frames import FrameSource
 from detector.geometry.types import GeometryConfig
 from detector.stage1.sampling import SamplingConfig
@@ -190,8 +191,7 @@ def train_two_stage(cfg: TwoStageConfig, train_path: str | Path, out_dir: str | 
     if list(part["class_ids"]) != list(stage1["class_ids"]):
         raise DetectorError(f"the stages learned different objects ({stage1['class_ids']} vs {part['class_ids']})")
     # each object's colour level in stage 2's training file, for infer.colour_level (a network without colour: none)
-    levels = None if (part.get("normalisation") or {}).get("colour") == "none" else \
-        colour_levels(train_path, part["class_ids"])
+    levels = colour_levels(train_path, part["class_ids"]) if reads_colour(part.get("normalisation")) else None
     return save_two_stage(out_dir / "model.pt", stage1, {**part, "infer_config": infer, "colour_levels": levels},
                           {"geometry_config": geometry, "sampling_config": cfg.resolved_sampling(),
                            "train_file": str(train_path)})

@@ -130,6 +130,12 @@ def input_normalisation(colour: str) -> dict:
     modes ``grey_world`` and ``grey_world_rgb``): :data:`INPUT_COLOUR`."""
     return {**NORMALISATION, "colour": INPUT_COLOUR[colour]} if colour in INPUT_COLOUR else dict(NORMALISATION)
 
+
+def reads_colour(normalisation: dict | None) -> bool:
+    """Whether a network with this input normalisation (:func:`input_normalisation`, as a checkpoint keeps it; None:
+    none stored) takes colour input: all but ``"colour": "none"``."""
+    return (normalisation or {}).get("colour") != "none"
+
 #: Augmentation strengths (metres, radians, colour units in [0, 1]).
 JITTER_SIGMA = 0.002
 

@@ -13,6 +13,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 import torch
 
+from detector.data.augment import reads_colour
 from detector.errors import DetectorError
 from detector.geometry.icp import fit_residuals, fit_rms, support_radius, surface_support
 from detector.geometry.kabsch import ransac_draws, ransac_kabsch
@@ -205,8 +206,7 @@ class CropPoser:
         self.support_distance, self.support_floor = support_distance, support_floor
         self.crop_cfg, self.normalisation, self.cfg = crop_cfg, normalisation, cfg or PoserConfig()
         self.device, self.seed = device, seed
-        self.colour_levels = colour_levels if self.cfg.colour_level and normalisation.get("colour") != "none" \
-            else None
+        self.colour_levels = colour_levels if self.cfg.colour_level and reads_colour(normalisation) else None
 
     def _run(self, features, centres, oids, samples: int = 1, gains=None):
         classes = np.array([self.class_ids.index(o) for o in oids], np.int64)
@@ -234,13 +234,13 @@ class CropPoser:
                 if pred is None:
                     continue
                 rows, prob, mxyz = pred
+                fg = prob >= self.cfg.fg_threshold
                 if it == 0 and self.colour_levels is not None:  # the level the frame shows of the asked object
-                    fg_rows = np.unique(rows[prob >= self.cfg.fg_threshold])
-                    gains[k] = level_gain(np.asarray(features)[fg_rows, 3:6], self.colour_levels.get(dets[k].obj_id))
+                    gains[k] = level_gain(np.asarray(features)[np.unique(rows[fg]), 3:6],
+                                          self.colour_levels.get(dets[k].obj_id))
                 surface = self.objects.surface(dets[k].obj_id) if self.cfg.verify > 1 else None
                 # the random choices in the crops' order here, the fits on threads: the results of one thread
-                draws = pose_draws(int(np.count_nonzero(prob >= self.cfg.fg_threshold)), self.cfg, rng,
-                                   surface is not None)
+                draws = pose_draws(int(np.count_nonzero(fg)), self.cfg, rng, surface is not None)
                 if draws is not None:
                     jobs.append((k, rows, prob, mxyz, surface, draws))
 
