@@ -185,11 +185,34 @@ for v in "" "--set infer.colour_level=false"; do
   done
 done
 false_alarms runs/lm8_offboard/model.pt --set infer.colour_level=false
-#    and a lower score threshold (0.6, 0.55 instead of the model's 0.65) on both validation captures
+#    and a lower score threshold (0.6, 0.55 instead of the model's: 0.65 until 2026-12-07's last change, 0.7 since) on
+#    both validation captures
 for ms in 0.6 0.55; do
   for d in lm_val lchf_val; do eval_run runs/lm8_offboard "$OUT/$d.h5" "reports/lm8_offboard_ms$ms-$d" "" --min-score $ms; done
 done
 false_alarms runs/lm8_offboard/model.pt --set "$G.nms_across_objects=false"
+
+# 3c. ICP's reach (`geometry.icp_distance` 0.1 and `min_score` 0.7, the defaults since 2026-12-07's last change;
+#     RESULTS.md, "ICP's reach"): the validation captures at each correspondence distance and with a Tukey kernel (the
+#     score threshold then 0.65), the test captures (seeds as above) and the real frames without LineMOD objects with
+#     the former pair (0.2, 0.65) and with 0.1 alone; runs/lm8_offboard's model file is checkpoints/lm8.pt
+for v in 0.05 0.07 0.1 0.15 0.2 0.3 k0.02 k0.05; do
+  case $v in k*) sets="$G.icp_kernel=${v#k} $G.icp_distance=0.2" ;; *) sets="$G.icp_distance=$v" ;; esac
+  for d in lm_val lchf_val; do
+    eval_run runs/lm8_offboard "$OUT/$d.h5" "reports/lm8_reach$v-$d" "$sets $G.min_score=0.65"
+  done
+done
+for v in "former:$G.icp_distance=0.2 $G.min_score=0.65" "reach0.1:$G.min_score=0.65"; do
+  n=${v%%:*}
+  eval_run runs/lm8_offboard "$OUT/lm_test.h5" "reports/lm8_$n-test" "${v#*:}"
+  eval_run runs/lm8_offboard "$OUT/lm_test.h5" "reports/lm8_$n-test_seed1" "${v#*:}" --seed 1
+  for seed in 0 1 2; do
+    eval_run runs/lm8_offboard "$OUT/lchf_test.h5" "reports/lm8_$n-lchf_seed$seed" "${v#*:}" --seed $seed
+  done
+  sets_of "${v#*:}"
+  false_alarms runs/lm8_offboard/model.pt "${SETS[@]}"
+done
+for dist in 0.12 0.15; do false_alarms runs/lm8_offboard/model.pt --set "$G.icp_distance=$dist" --set "$G.min_score=0.65"; done
 
 # 4. the previous lm8.pt (runs/lm8) evaluated with its own thresholds: linemod test set with and without ICP, lchf test set (F1), also with
 #    sampling seeds 1 (both) and 2 (lchf), and both validation captures with sampling seeds 0-3

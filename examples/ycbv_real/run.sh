@@ -351,6 +351,19 @@ if [ "${APART:-0}" = 1 ]; then
   done
   .venv/bin/python examples/ycbv_real/seeds.py "$REP/seeds_apart"
 fi
+# 6n. ICP's reach (`geometry.icp_distance` 0.1 and `min_score` 0.7, the defaults since 2026-12-07's last change;
+#     RESULTS.md, lm8's "ICP's reach"): the shipped model with the former pair (0.2, 0.65) and with 0.1 alone, seeds 0-7
+#     on the real frames, beside step 6c's default rows. Only with REACH=1
+if [ "${REACH:-0}" = 1 ]; then
+  for v in "former:geometry.icp_distance=0.2 geometry.min_score=0.65" "reach0.1:geometry.min_score=0.65"; do
+    sets=(); for kv in ${v#*:}; do sets+=(--set "$kv"); done
+    for seed in 0 1 2 3 4 5 6 7; do
+      [ -f "$REP/seeds_reach/${v%%:*}-$seed/report.json" ] || $D eval "$RUN/model.pt" "$OUT/ycbv_real.h5" \
+        --out "$REP/seeds_reach/${v%%:*}-$seed" --icp --min-visib 0 --quiet --seed $seed "${sets[@]}"
+    done
+  done
+  .venv/bin/python examples/ycbv_real/seeds.py "$REP/seeds_reach"
+fi
 # 6m. how bright the real sensor shows the objects against the renderer (RESULTS.md, lm8's "Stage 2's colour level"):
 #     each object's colour level (the median over its instances of their visible points' mean colour) in the real
 #     frames and in the training capture, and the ratio of their mean luminances
