@@ -48,7 +48,7 @@ def evaluate(predictor: Predictor, label_path: str | Path, out_dir: str | Path, 
              cfg: GeometryConfig | None = None, frames: list[int] | None = None, min_visib: float = 0.1,
              device: str = "cpu", progress: bool = False, poser=None, method: str = METHOD,
              dataset_name: str | None = None, bop_dataset: str | Path | None = None, bop19: bool = True,
-             sampling: dict | None = None, objects: ObjectInfo | None = None) -> dict:
+             sampling: dict | None = None, objects: ObjectInfo | None = None, run: dict | None = None) -> dict:
     """Evaluate ``predictor`` on a label file and write the report into ``out_dir``.
 
     objects: what the inference knows of the objects (a model's: :func:`detector.infer.checkpoint_objects`, with the
@@ -67,7 +67,8 @@ def evaluate(predictor: Predictor, label_path: str | Path, out_dir: str | Path, 
     points and keypoints of each pass), recorded
     as summary["sampling"] (None: not recorded). A stage 2's inference settings (the ``cfg`` of a
     :class:`detector.stage2.poser.CropPoser` ``poser``) are recorded as summary["infer"] (None: none, or a poser
-    that does not carry them).
+    that does not carry them). run: what else made the report (the model file, the label file, the seed...:
+    :func:`detector.report.run_record`), recorded as summary["run"].
     Returns the summary written to report.json (per-object ADD accuracies at 10/15/30 % without and with ICP,
     F1 at 15 %, mean ms per stage, fps, and with ICP how many detections had their ICP pose accepted, rejected
     (it did not fit better, so the unrefined pose was kept) or skipped (too few points): "icp_refinement"; "bop19":
@@ -146,7 +147,14 @@ def evaluate(predictor: Predictor, label_path: str | Path, out_dir: str | Path, 
         scores["toolkit_dataset"] = toolkit_name if csv_name.split("_", 1)[1].startswith(f"{toolkit_name}-") else None
     return _finish(gt_rows, counts, times, table, cfg, keys, icp, str(label_path), num_frames, bop_rows, out_dir,
                    device, icp_status if icp else None, csv_name, scores, sampling,
-                   asdict(poser.cfg) if is_dataclass(getattr(poser, "cfg", None)) else None)
+                   report_settings(cfg, icp, sampling, poser, run)["infer"], run)
+
+
+def report_settings(cfg: GeometryConfig | None, icp: bool, sampling: dict | None, poser, run: dict | None) -> dict:
+    """The report.json entries that say how :func:`evaluate` with these arguments makes its report
+    (:data:`detector.report.MADE_BY`), as it records them: ``detector eval --reuse`` compares them with a report's."""
+    return {"run": run, "icp": icp, "config": asdict(replace(cfg or GeometryConfig(), icp=icp)), "sampling": sampling,
+            "infer": asdict(poser.cfg) if is_dataclass(getattr(poser, "cfg", None)) else None}
 
 
 def bop19_summary(bop_rows: list[dict], images: set[tuple[int, int]], root, split: str, argen_json: str = "",
@@ -170,7 +178,7 @@ def bop19_summary(bop_rows: list[dict], images: set[tuple[int, int]], root, spli
 
 
 def _finish(gt_rows, counts, times, table, cfg, keys, icp, label_file, num_frames, bop_rows, out_dir, device,
-            icp_status=None, csv_name="argen_argen-test.csv", bop19=None, sampling=None, infer=None) -> dict:
+            icp_status=None, csv_name="argen_argen-test.csv", bop19=None, sampling=None, infer=None, run=None) -> dict:
     """Aggregate per-instance rows into the summary, write the report files and return the summary."""
     objs, curves = [], {}
     for m, oid in enumerate(table.ids.tolist()):
@@ -202,7 +210,7 @@ def _finish(gt_rows, counts, times, table, cfg, keys, icp, label_file, num_frame
     timing_ms = {s: 1000 * float(np.mean([t.get(s, 0.0) for t in times])) if times else 0.0 for s in stages}
     timing_ms["total"] = 1000 * float(np.mean([t["total"] for t in times])) if times else 0.0
     summary = {"label_file": label_file, "num_frames": num_frames, "icp": icp, "config": asdict(cfg),
-               "sampling": sampling, "infer": infer,
+               "sampling": sampling, "infer": infer, "run": run,
                "objects": objs, "mean": mean, "f1": f1, "timing_ms": timing_ms,
                "fps": 1000.0 / timing_ms["total"] if timing_ms["total"] > 0 else float("inf"),
                "device": device, "bop_csv": csv_name, "icp_refinement": icp_status,

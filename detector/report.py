@@ -7,6 +7,7 @@ The BOP CSV is a BOP boundary: there, and only there, translations are millimetr
 from __future__ import annotations
 
 import csv
+import hashlib
 import json
 import math
 from pathlib import Path
@@ -19,6 +20,48 @@ from detector.evaluation.metrics import THRESHOLDS
 BOP_FIELDS = ("scene_id", "im_id", "obj_id", "score", "R", "t", "time")
 STAGES = ("sampling", "network", "voting", "kabsch", "stage2", "icp", "depth_check", "colour_check", "part_check",
           "continuation_check")
+
+
+def file_identity(path: str | Path) -> dict:
+    """How a report names a file it was made from: {"path": as given, "bytes": its size, "sha256": its digest}. The
+    digest, not the time it was written: a label file or model made again with the same bytes is the same input."""
+    p = Path(path)
+    with p.open("rb") as f:
+        digest = hashlib.file_digest(f, "sha256").hexdigest()
+    return {"path": str(path), "bytes": p.stat().st_size, "sha256": digest}
+
+
+def run_record(model: str | Path | None, labels: str | Path, **options) -> dict:
+    """What made a report besides its settings (``config``, ``sampling``, ``infer``): the model file and the label
+    file (:func:`file_identity`; model None: no model, an oracle evaluation) and the evaluation's other options
+    (seed, visibility threshold, frames...), JSON values."""
+    return {"model": None if model is None else file_identity(model), "labels": file_identity(labels), **options}
+
+
+#: The report.json entries that say how a report was made: equal in two reports, the same evaluation made them.
+MADE_BY = ("run", "icp", "config", "sampling", "infer")
+
+
+def previous_report(out_dir: str | Path) -> dict:
+    """The report.json in ``out_dir`` as a dict; {} where there is none or it cannot be read (it is made again)."""
+    try:
+        report = json.loads((Path(out_dir) / "report.json").read_text())
+    except (OSError, ValueError):
+        return {}
+    return report if isinstance(report, dict) else {}
+
+
+def made_alike(report: dict, made_by: dict) -> bool:
+    """Whether ``report`` (a report.json's contents) was made as ``made_by`` says (:data:`MADE_BY` entries, as the
+    evaluation about to run would record them): a report written before reports recorded their ``run`` never is.
+    Model and label files count by their digests, not by their paths."""
+    def key(d: dict) -> str:
+        d = json.loads(json.dumps({k: d.get(k) for k in MADE_BY}))
+        for f in ("model", "labels"):
+            if isinstance(d["run"], dict) and isinstance(d["run"].get(f), dict):
+                d["run"][f].pop("path", None)
+        return json.dumps(d, sort_keys=True)
+    return isinstance(report.get("run"), dict) and key(report) == key(made_by)
 
 
 def bop_row(scene_id: int, im_id: int, obj_id: int, score: float, R: np.ndarray, t: np.ndarray, time_s: float) -> dict:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import hashlib
 import json
 
 import numpy as np
@@ -310,6 +311,53 @@ def test_cli_eval_and_predict_with_a_random_network(random_checkpoint, dataset, 
                                 "--max-depth", value])
         assert_one_line_error(r, *words)
     assert not (tmp_path / "pred2").exists()
+
+
+def test_eval_reuse_keeps_a_report_only_when_the_same_run_made_it(random_checkpoint, label_file, tmp_path):
+    """--reuse keeps a report made from the same model and label bytes, settings, seed and options, and evaluates
+    again when any of them differs; the report records what made it."""
+    import shutil
+
+    from detector.cli.app import app
+
+    runner, rep = CliRunner(), tmp_path / "rep"
+    base = ["eval", str(random_checkpoint), str(label_file), "--out", str(rep), "--frames", "1", "--tau", "0",
+            "--quiet", "--reuse"]
+
+    def run(*extra: str) -> tuple[str, float]:
+        r = runner.invoke(app, base + list(extra))
+        assert r.exit_code == 0, r.output
+        return r.output, (rep / "report.json").stat().st_mtime_ns
+
+    out, made = run()
+    assert "up to date" not in out
+    js = json.loads((rep / "report.json").read_text())
+    assert js["run"]["seed"] == 0 and js["run"]["frames"] == 1
+    assert js["run"]["model"]["sha256"] == hashlib.sha256(random_checkpoint.read_bytes()).hexdigest()
+    assert js["run"]["labels"]["bytes"] == label_file.stat().st_size
+    out, again = run()
+    assert "up to date" in out and again == made  # nothing evaluated, nothing written
+    copy = tmp_path / "copy.pt"  # the same bytes under another name: the same model
+    shutil.copy(random_checkpoint, copy)
+    r = runner.invoke(app, ["eval", str(copy)] + base[2:])
+    assert r.exit_code == 0 and "up to date" in r.output, r.output
+    for extra in (["--seed", "1"], ["--set", "geometry.min_votes=4"], ["--set", "sampling.passes=2"],
+                  ["--min-score", "0.3"], ["--min-visib", "0.2"], ["--icp"]):
+        out, now = run(*extra)
+        assert "up to date" not in out and now != made, extra
+        made = now
+    # another model's bytes, and a report from before reports recorded their run: evaluated again
+    other = tmp_path / "other.pt"
+    ck = torch.load(random_checkpoint, weights_only=False)
+    ck["step"] = 1
+    torch.save(ck, other)
+    r = runner.invoke(app, ["eval", str(other)] + base[2:] + ["--icp"])
+    assert r.exit_code == 0 and "up to date" not in r.output, r.output
+    js = json.loads((rep / "report.json").read_text())
+    js.pop("run")
+    (rep / "report.json").write_text(json.dumps(js))
+    r = runner.invoke(app, ["eval", str(other)] + base[2:] + ["--icp"])
+    assert "up to date" not in r.output and "run" in json.loads((rep / "report.json").read_text())
 
 
 def assert_one_line_error(r, *words: str) -> None:

@@ -50,12 +50,18 @@ def register(app: typer.Typer) -> None:
         seed: int = typer.Option(0, "--seed", help="Point sampling seed."),
         sets: list[str] = typer.Option([], "--set", help=SET_HELP),
         quiet: bool = typer.Option(False, "--quiet", help="No progress bar."),
+        reuse: bool = typer.Option(False, "--reuse", help="Keep the report in --out when it was made as this run "
+                                                          "would make it (the same model and label file bytes, "
+                                                          "settings, seed and options; the code is not compared) and "
+                                                          "evaluate nothing; else evaluate. For scripts that are run "
+                                                          "again."),
     ) -> None:
         """Evaluate a checkpoint on a label file: ADD/ADD-S accuracy, F1, BOP19 AR, timings, BOP results CSV."""
         # lazy: torch and open3d load in seconds; `detector --help` and the other commands do not need them
         from detector.checkpoint import load_checkpoint
         from detector.data.frames import open_label_file
-        from detector.evaluate import evaluate
+        from detector.evaluate import evaluate, report_settings
+        from detector.report import made_alike, previous_report, run_record
         from detector.infer import (check_label_objects, checkpoint_geometry_config, checkpoint_objects,
                                     checkpoint_poser, split_sets)
         from detector.stage1.predictor import network_predictor
@@ -74,10 +80,15 @@ def register(app: typer.Typer) -> None:
             check_label_objects(ckpt, lf.objects)
         objects = checkpoint_objects(ckpt)[0]
         poser = checkpoint_poser(ckpt, objects, device, seed, infer_sets)
+        run = run_record(checkpoint, data, seed=seed, device=device, min_visib=min_visib, frames=frames, method=method,
+                         dataset_name=dataset_name, bop_dataset=None if bop_dataset is None else str(bop_dataset))
+        if reuse and made_alike(previous_report(out), report_settings(cfg, icp, ckpt.sampling_used, poser, run)):
+            typer.echo(f"{out / 'report.md'} is up to date: made from the same model, label file, settings and seed")
+            return
         s = evaluate(network_predictor(ckpt, seed), data, out, icp=icp, cfg=cfg, device=device,
                      frames=list(range(min(n, frames or n))), min_visib=min_visib, progress=not quiet,
                      poser=poser, method=method, dataset_name=dataset_name, bop_dataset=bop_dataset,
-                     sampling=ckpt.sampling_used, objects=objects)
+                     sampling=ckpt.sampling_used, objects=objects, run=run)
         key = "icp" if icp else "noicp"
         b = s["bop19"]
         ar = f"BOP19 AR: {b['bop19_average_recall']:.3f}  " if "skipped" not in b else ""

@@ -62,7 +62,7 @@ if [ ! -f "$RUNS/model.pt" ]; then  # a run begun before is resumed with the set
 fi
 
 # 5. evaluate on the held-out capture (another seed), with ICP refinement
-step eval $D eval "$RUNS/model.pt" "$OUT/test.h5" --out "$REP" --icp --quiet
+step eval $D eval --reuse "$RUNS/model.pt" "$OUT/test.h5" --out "$REP" --icp --quiet
 grep -E "ADD|F1|recall|precision" "$REP/report.md" | head -n 12 || true
 
 # 6. one frame: poses.json and a picture of the boxes (poses.png)

@@ -49,17 +49,12 @@ train_beside() {
   fi
 }
 # eval_run RUN LABELS REPORT "KEY=VALUE ..." [EVAL OPTIONS]: RUN's detector eval --icp with those --set values into
-# the folder REPORT, unless it holds a report that records its farthest point sampling, its surface-continuation
-# setting, its one-detection-a-place setting and its stage-2 settings (one written before the tree-based FPS,
-# 2026-12-06, or before those three, 2026-12-07, does not, and may be of runs/lm8's inference of then: it is made
-# again)
+# the folder REPORT, unless it holds a report made from the same model, label file, settings and seed (--reuse)
 eval_run() {
   local r=$1 data=$2 rep=$3
   sets_of "$4"
   shift 4
-  { grep -qs '"fps": "' "$rep/report.json" && grep -qs '"continuation_check"' "$rep/report.json" &&
-    grep -qs '"nms_across_objects"' "$rep/report.json" && grep -qs '"infer": ' "$rep/report.json"; } ||
-    $D eval "$r/model.pt" "$data" --out "$rep" --icp --quiet "${SETS[@]}" "$@"
+  $D eval --reuse "$r/model.pt" "$data" --out "$rep" --icp --quiet "${SETS[@]}" "$@"
 }
 # eval_captures RUN [SUFFIX EVAL OPTIONS...]: RUN/model.pt with ICP on both test and both validation captures, into
 # reports/NAME-CAPTURE (NAME: RUN's folder name, then SUFFIX), each report once (steps 7-9)
@@ -216,8 +211,8 @@ for dist in 0.12 0.15; do false_alarms runs/lm8_offboard/model.pt --set "$G.icp_
 
 # 4. the previous lm8.pt (runs/lm8) evaluated with its own thresholds: linemod test set with and without ICP, lchf test set (F1), also with
 #    sampling seeds 1 (both) and 2 (lchf), and both validation captures with sampling seeds 0-3
-$D eval runs/lm8/model.pt "$OUT/lm_test.h5"   --out reports/lm8_test  --icp --quiet
-$D eval runs/lm8/model.pt "$OUT/lchf_test.h5" --out reports/lm8_lchf  --icp --quiet
+$D eval --reuse runs/lm8/model.pt "$OUT/lm_test.h5"   --out reports/lm8_test  --icp --quiet
+$D eval --reuse runs/lm8/model.pt "$OUT/lchf_test.h5" --out reports/lm8_lchf  --icp --quiet
 #    where the missed instances of the linemod test set were lost (RESULTS.md, "Where it falls short")
 .venv/bin/python bench/probe_misses.py runs/lm8/model.pt "$OUT/lm_test.h5" reports/lm8_test/report.json
 #    and with the training's FPS, its inference until 2026-12-06 (step 4a writes reports/lm8_trained_test)

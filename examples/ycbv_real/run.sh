@@ -29,13 +29,6 @@ INFER=(--set sampling.passes=1 --set geometry.min_votes=3)
 # point sampling at inference, before the tree-based one became the default (RESULTS.md): their evaluations and the
 # model files they train keep it (BEFORE)
 BEFORE=(--set sampling.fps=trained)
-# fresh REPORT: REPORT holds a report that records its farthest point sampling, its surface-continuation setting and
-# its one-detection-a-place setting (one written before 2026-12-06, or before those two, 2026-12-07, does not, and may
-# be of the default inference of then: it is made again)
-fresh() {  # the sampling's FPS, a string (frames per second: a number)
-  grep -qs '"fps": "' "$1/report.json" && grep -qs '"continuation_check"' "$1/report.json" &&
-    grep -qs '"nms_across_objects"' "$1/report.json"
-}
 step() { local name=$1; shift; local t0; t0=$(date +%s); "$@"; echo "$name $(( $(date +%s) - t0 )) s" >> "$T"; }
 # train_beside KEEP R YAML [TRAIN OPTIONS]: the run folder R holds a copy of the run's finished stage KEEP (stage1 or
 # stage2) and YAML as its two_stage.yaml, and is trained on the capture with distractors (resumed: the finished stage
@@ -110,8 +103,8 @@ for a in "neither:$G.depth_check=false $G.other_classes=2 $G.colour_check=false 
          "half_turns_30_iterations:$G.icp_iterations=30" "no_half_turns:$G.icp_half_turns=false"; do
   name=${a%%:*}; sets=("${BEFORE[@]}")
   for kv in ${a#*:}; do sets+=(--set "$kv"); done
-  [ -f "$REP/inference_$name/report.json" ] || \
-    $D eval "$RUN/model.pt" "$OUT/ycbv_real.h5" --out "$REP/inference_$name" --icp --min-visib 0 --quiet "${sets[@]}"
+  $D eval --reuse "$RUN/model.pt" "$OUT/ycbv_real.h5" --out "$REP/inference_$name" --icp --min-visib 0 --quiet \
+    "${sets[@]}"
 done
 # 6b. the colour check on a simulated test capture of the same objects (another seed), with and without it: the
 #     rendered print, which stage 2 was trained on, leaves it little to correct (RESULTS.md)
@@ -119,7 +112,7 @@ done
   --models "$M" --frames 80 --seed 7 --workers 2 --quiet --out "$OUT/ycbv_simtest"
 surfaces "$OUT/ycbv_simtest.h5" || $A label "$OUT/ycbv_simtest" --out "$OUT/ycbv_simtest.h5" --max-depth 1.5 --quiet
 for c in true false; do
-  [ -f "$REP/simtest_colour_check_$c/report.json" ] || $D eval "$RUN/model.pt" "$OUT/ycbv_simtest.h5" \
+  $D eval --reuse "$RUN/model.pt" "$OUT/ycbv_simtest.h5" \
     --out "$REP/simtest_colour_check_$c" --icp --quiet --set geometry.colour_check=$c "${BEFORE[@]}"
 done
 # 6c. the sampling seed (RESULTS.md): which points stage 1 sees and stage 2's RANSAC draws, seeds 0-7, for the
@@ -139,7 +132,7 @@ for a in "default:" "trained_fps:" "verify_32:infer.verify=32" "before_half_turn
   case $name in default|verify_32) ;; *) sets=("${BEFORE[@]}") ;; esac
   for kv in ${a#*:}; do sets+=(--set "$kv"); done
   for seed in 0 1 2 3 4 5 6 7; do
-    fresh "$REP/seeds/$name-$seed" || $D eval "$RUN/model.pt" "$OUT/ycbv_real.h5" \
+    $D eval --reuse "$RUN/model.pt" "$OUT/ycbv_real.h5" \
       --out "$REP/seeds/$name-$seed" --icp --min-visib 0 --quiet --seed $seed "${sets[@]}"
   done
 done
@@ -157,10 +150,10 @@ for variant in camera:camera:true:0:0 none_own_symmetries:none:false:0:0 none_se
   train_beside stage1 "$r" "$(printf 'stage1:\n  colour: none\n  plane_keep: 0.1\nstage2:\n  crop.colour: %s\n  crop.shape_turns: %s\n  crop.negatives: %s\n  crop.part_turns: false\n  seed: %s\n  steps: %s\n  keep_every: 2000' \
     "$colour" "$turns" "$negatives" "$s2seed" "$S2STEPS")"
   for seed in 0 1 2 3 4 5 6 7; do
-    [ -f "$REP/seeds_stage2/$name-$seed/report.json" ] || $D eval "$r/model.pt" "$OUT/ycbv_real.h5" \
+    $D eval --reuse "$r/model.pt" "$OUT/ycbv_real.h5" \
       --out "$REP/seeds_stage2/$name-$seed" --icp --min-visib 0 --quiet --seed $seed --set geometry.part_check=false
   done
-  [ -f "$REP/simtest_s2_$name/report.json" ] || $D eval "$r/model.pt" "$OUT/ycbv_simtest.h5" \
+  $D eval --reuse "$r/model.pt" "$OUT/ycbv_simtest.h5" \
     --out "$REP/simtest_s2_$name" --icp --quiet --set geometry.part_check=false
 done
 .venv/bin/python examples/ycbv_real/seeds.py "$REP/seeds_stage2"
@@ -177,10 +170,10 @@ for variant in plane_keep_1:1.0:0 plane_seed_1:0.1:1; do
   train_beside stage2 "$r" "$(printf 'stage1:\n  colour: none\n  plane_keep: %s\n  seed: %s\nstage2:\n  crop.colour: %s\n  steps: %s\n  keep_every: 2000' \
     "$keep" "$s1seed" "$S2COLOUR" "$S2STEPS")" --stage1-data "$OUT/ycbv_stage1.h5"
   for seed in 0 1 2 3 4 5 6 7; do
-    [ -f "$REP/seeds_plane/$name-$seed/report.json" ] || $D eval "$r/model.pt" "$OUT/ycbv_real.h5" \
+    $D eval --reuse "$r/model.pt" "$OUT/ycbv_real.h5" \
       --out "$REP/seeds_plane/$name-$seed" --icp --min-visib 0 --quiet --seed $seed
   done
-  [ -f "$REP/simtest_$name/report.json" ] || $D eval "$r/model.pt" "$OUT/ycbv_simtest.h5" --out "$REP/simtest_$name" \
+  $D eval --reuse "$r/model.pt" "$OUT/ycbv_simtest.h5" --out "$REP/simtest_$name" \
     --icp --quiet
 done
 .venv/bin/python examples/ycbv_real/seeds.py "$REP/seeds_plane"
@@ -198,8 +191,7 @@ if [ "${COLOUR_MODES:-0}" = 1 ]; then
       r="$RUN-s2-$mode-$seed"
       train_beside stage1 "$r" \
         "$(printf 'stage1:\n  colour: none\nstage2:\n  crop.colour: %s\n  steps: 3000\n  seed: %s' "$mode" "$seed")"
-      [ -f "$REP/s2-$mode-$seed/report.json" ] || \
-        $D eval "$r/model.pt" "$OUT/ycbv_real.h5" --out "$REP/s2-$mode-$seed" --icp --min-visib 0 --quiet
+      $D eval --reuse "$r/model.pt" "$OUT/ycbv_real.h5" --out "$REP/s2-$mode-$seed" --icp --min-visib 0 --quiet
       echo "$r"
       .venv/bin/python bench/probe_crops.py "$r/model.pt" "$OUT/ycbv_real.h5" --jitter 0
       .venv/bin/python bench/probe_crops.py "$r/model.pt" "$OUT/ycbv_real.h5" --jitter 0 --paint-models "$M"
@@ -216,11 +208,11 @@ train_beside stage1 "$r" "$(printf 'stage1:\n  colour: none\n  plane_keep: 0.1\n
 for a in "no_part_turns:$r" "no_part_check:$RUN"; do
   name=${a%%:*}; m=${a#*:}
   for seed in 0 1 2 3 4 5 6 7; do
-    [ -f "$REP/seeds_parts/$name-$seed/report.json" ] || $D eval "$m/model.pt" "$OUT/ycbv_real.h5" \
+    $D eval --reuse "$m/model.pt" "$OUT/ycbv_real.h5" \
       --out "$REP/seeds_parts/$name-$seed" --icp --min-visib 0 --quiet --seed $seed --set geometry.part_check=false \
       "${BEFORE[@]}"
   done
-  [ -f "$REP/simtest_$name/report.json" ] || $D eval "$m/model.pt" "$OUT/ycbv_simtest.h5" --out "$REP/simtest_$name" \
+  $D eval --reuse "$m/model.pt" "$OUT/ycbv_simtest.h5" --out "$REP/simtest_$name" \
     --icp --quiet --set geometry.part_check=false "${BEFORE[@]}"
 done
 .venv/bin/python examples/ycbv_real/seeds.py "$REP/seeds_parts"
@@ -238,13 +230,13 @@ if [ "${S2LENGTH:-0}" = 1 ]; then
     train_beside stage1 "$r" "$(printf 'stage1:\n  colour: none\n  plane_keep: 0.1\nstage2:\n  crop.colour: none\n  seed: %s\n  steps: %s\n  keep_every: 2000' \
       "$s2seed" "$steps")"
     for seed in 0 1 2 3 4 5 6 7; do
-      [ -f "$REP/seeds_length/$name-$seed/report.json" ] || $D eval "$r/model.pt" "$OUT/ycbv_real.h5" \
+      $D eval --reuse "$r/model.pt" "$OUT/ycbv_real.h5" \
         --out "$REP/seeds_length/$name-$seed" --icp --min-visib 0 --quiet --seed $seed --set sampling.fps=tree
     done
-    [ -f "$REP/simtest_$name/report.json" ] || $D eval "$r/model.pt" "$OUT/ycbv_simtest.h5" --out "$REP/simtest_$name" \
+    $D eval --reuse "$r/model.pt" "$OUT/ycbv_simtest.h5" --out "$REP/simtest_$name" \
       --icp --quiet --set sampling.fps=tree
   done
-  [ -f "$REP/simtest_default/report.json" ] || $D eval "$RUN/model.pt" "$OUT/ycbv_simtest.h5" \
+  $D eval --reuse "$RUN/model.pt" "$OUT/ycbv_simtest.h5" \
     --out "$REP/simtest_default" --icp --quiet
   .venv/bin/python examples/ycbv_real/seeds.py "$REP/seeds_length"
 fi
@@ -264,16 +256,16 @@ if [ "${DESK:-0}" = 1 ]; then
     train_beside stage2 "$r" "$(printf 'stage1:\n  colour: none\n  plane_keep: 0.1\n  seed: %s\nstage2:\n  crop.colour: none\n  steps: %s\n  keep_every: 2000' \
       "$s1seed" "$S2STEPS")" --stage1-data "$OUT/ycbv_stage1_desk.h5"
     for seed in 0 1 2 3 4 5 6 7; do
-      [ -f "$REP/seeds_desk/desk_things_seed_$s1seed-$seed/report.json" ] || $D eval "$r/model.pt" \
+      $D eval --reuse "$r/model.pt" \
         "$OUT/ycbv_real.h5" --out "$REP/seeds_desk/desk_things_seed_$s1seed-$seed" --icp --min-visib 0 --quiet \
         --seed $seed --set sampling.fps=tree
     done
-    [ -f "$REP/simtest_desk_things_seed_$s1seed/report.json" ] || $D eval "$r/model.pt" "$OUT/ycbv_simtest.h5" \
+    $D eval --reuse "$r/model.pt" "$OUT/ycbv_simtest.h5" \
       --out "$REP/simtest_desk_things_seed_$s1seed" --icp --quiet --set sampling.fps=tree
     .venv/bin/python bench/probe_stage1.py "$r/model.pt" "$OUT/ycbv_real.h5" --frames 10 --min-visib 0
   done
   for seed in 0 1 2 3 4 5 6 7; do
-    [ -f "$REP/seeds_desk/shipped-$seed/report.json" ] || $D eval "$RUN/model.pt" "$OUT/ycbv_real.h5" \
+    $D eval --reuse "$RUN/model.pt" "$OUT/ycbv_real.h5" \
       --out "$REP/seeds_desk/shipped-$seed" --icp --min-visib 0 --quiet --seed $seed --set sampling.fps=tree
   done
   .venv/bin/python examples/ycbv_real/seeds.py "$REP/seeds_desk"
@@ -283,12 +275,12 @@ fi
 #     and the simulated test capture, beside step 6c's rows with it
 if [ "${CONTINUATION:-0}" = 1 ]; then
   for seed in 0 1 2 3 4 5 6 7; do
-    [ -f "$REP/seeds_continuation/no_continuation-$seed/report.json" ] || $D eval "$RUN/model.pt" \
+    $D eval --reuse "$RUN/model.pt" \
       "$OUT/ycbv_real.h5" --out "$REP/seeds_continuation/no_continuation-$seed" --icp --min-visib 0 --quiet \
       --seed $seed --set geometry.continuation_check=false
   done
   .venv/bin/python examples/ycbv_real/seeds.py "$REP/seeds_continuation"
-  [ -f "$REP/simtest_no_continuation/report.json" ] || $D eval "$RUN/model.pt" "$OUT/ycbv_simtest.h5" \
+  $D eval --reuse "$RUN/model.pt" "$OUT/ycbv_simtest.h5" \
     --out "$REP/simtest_no_continuation" --icp --quiet --set geometry.continuation_check=false
 fi
 # 6j. the default recipe (`detector train`'s, checkpoints/lm8.pt's) on these objects, stage by stage (RESULTS.md,
@@ -329,12 +321,12 @@ if [ "${DEFAULT_RECIPE:-0}" = 1 ]; then
   for name in default default_s1 default_s2 G1 G2 MIX OFF OFFG; do
     model=$REP/recipe_$name.pt; [ $name = default ] && model=$X/model.pt
     for seed in 0 1 2 3 4 5 6 7; do
-      [ -f "$REP/seeds_recipe/$name-$seed/report.json" ] || $D eval "$model" "$OUT/ycbv_real.h5" \
+      $D eval --reuse "$model" "$OUT/ycbv_real.h5" \
         --out "$REP/seeds_recipe/$name-$seed" --icp --min-visib 0 --quiet --seed $seed
     done
   done
   .venv/bin/python examples/ycbv_real/seeds.py "$REP/seeds_recipe"
-  [ -f "$REP/simtest_default_recipe/report.json" ] || $D eval "$X/model.pt" "$OUT/ycbv_simtest.h5" \
+  $D eval --reuse "$X/model.pt" "$OUT/ycbv_simtest.h5" \
     --out "$REP/simtest_default_recipe" --icp --quiet
 fi
 # 6k. one detection a place (`geometry.nms_across_objects`, on by default since 2026-12-07's last change; RESULTS.md,
@@ -345,7 +337,7 @@ if [ "${APART:-0}" = 1 ]; then
   for v in "apart:geometry.nms_across_objects=false" "oc0.2:geometry.other_classes=0.2" \
            "oc0.3:geometry.other_classes=0.3"; do
     for seed in 0 1 2 3 4 5 6 7; do
-      [ -f "$REP/seeds_apart/${v%%:*}-$seed/report.json" ] || $D eval "$RUN/model.pt" "$OUT/ycbv_real.h5" \
+      $D eval --reuse "$RUN/model.pt" "$OUT/ycbv_real.h5" \
         --out "$REP/seeds_apart/${v%%:*}-$seed" --icp --min-visib 0 --quiet --seed $seed --set "${v#*:}"
     done
   done
@@ -358,7 +350,7 @@ if [ "${REACH:-0}" = 1 ]; then
   for v in "former:geometry.icp_distance=0.2 geometry.min_score=0.65" "reach0.1:geometry.min_score=0.65"; do
     sets=(); for kv in ${v#*:}; do sets+=(--set "$kv"); done
     for seed in 0 1 2 3 4 5 6 7; do
-      [ -f "$REP/seeds_reach/${v%%:*}-$seed/report.json" ] || $D eval "$RUN/model.pt" "$OUT/ycbv_real.h5" \
+      $D eval --reuse "$RUN/model.pt" "$OUT/ycbv_real.h5" \
         --out "$REP/seeds_reach/${v%%:*}-$seed" --icp --min-visib 0 --quiet --seed $seed "${sets[@]}"
     done
   done
