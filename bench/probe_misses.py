@@ -3,7 +3,7 @@
 only a centre of another object, or one of its own whose stage-2 pose was then wrong, or right but scored under
 ``min_score``; of the wrong poses, whether ICP from any of its starts (the stage-2 pose, its other verified
 hypotheses, its half turns) would have reached a right one, which tells ICP's choice among its results from stage 2's
-poses. It reruns the model on the missed instances' frames with the report's settings (give eval's
+poses, and whether ICP from the true pose on its points stays right, which tells the starts from the points. It reruns the model on the missed instances' frames with the report's settings (give eval's
 ``--seed`` and ``--set``) and reads the poses before the score threshold. Usage:
 
     python bench/probe_misses.py MODEL LABELS REPORT [--seed S] [--set KEY=V ...] [--min-visib V] [--json OUT]
@@ -40,8 +40,11 @@ CAUSES = ("no stage-1 centre", "another object's centre only", "no stage-2 pose"
           "right pose, score under min_score", "right pose, not chosen")
 #: Of the wrong poses, those that ICP from another of its starts would have made right (a column after them).
 START_RIGHT = "of them, an ICP start right"
+#: Of the wrong poses, those whose points hold the true pose: ICP from the true pose on them stays right, so what
+#: failed is the start (stage 2's poses), not the points (a column after them).
+TRUTH_HOLDS = "of them, ICP from the truth stays right"
 #: The table's columns.
-COLUMNS = CAUSES[:4] + (START_RIGHT,) + CAUSES[4:]
+COLUMNS = CAUSES[:4] + (START_RIGHT, TRUTH_HOLDS) + CAUSES[4:]
 
 
 def miss_cause(obj_id: int, centre: np.ndarray, diameter: float, stage1: list[Detection], posed: list[Detection],
@@ -83,6 +86,21 @@ def icp_start_errors(detection: Detection, cloud: np.ndarray, objects: ObjectInf
         R, t = icp_from_start(pts, oid, R0, t0, objects, cfg)
         out.append(float(error(replace(detection, R=R, t=t))))
     return out
+
+
+def icp_from_truth_error(detection: Detection, cloud: np.ndarray, objects: ObjectInfo, cfg: GeometryConfig,
+                         R_true: np.ndarray, t_true: np.ndarray, error) -> float | None:
+    """The pose error (metres, ``error`` of a detection) of ICP run from the true pose (R_true (3,3), t_true (3,)
+    metres) on the points ICP takes of an unrefined two-stage detection's own points (rows of ``cloud`` (M,3) camera
+    metres), as :func:`icp_start_errors` runs each start: small when those points hold the true pose (the detection
+    failed at its starts), large when they pull away from it (its points are wrong). None when the detection has too
+    few points for ICP."""
+    if detection.points is None or len(detection.points) < cfg.icp_min_points:
+        return None
+    pts = icp_points(np.asarray(cloud)[detection.points], cfg)
+    R, t = icp_from_start(pts, detection.obj_id, np.asarray(R_true, np.float64), np.asarray(t_true, np.float64),
+                          objects, cfg)
+    return float(error(replace(detection, R=R, t=t)))
 
 
 def missed_instances(report: dict, threshold: float) -> dict[int, list[tuple[int, int]]]:
@@ -158,10 +176,14 @@ def main() -> None:
                     # checks, which turn some objects' unrefined poses once ICP has started from them as they were)
                     near = [d for d in unrefined if d.obj_id == oid and
                             np.linalg.norm(d.control_points[8] - inst.control_points[g][8]) < 0.5 * dia]
-                    errors = icp_start_errors(max(near, key=lambda d: d.score), fr.features[:, :3], objects, cfg,
-                                              err) if near else []
+                    best = max(near, key=lambda d: d.score) if near else None
+                    errors = icp_start_errors(best, fr.features[:, :3], objects, cfg, err) if near else []
                     row["icp_start_right"] = bool(errors) and min(errors) < a.threshold * dia
                     per[oid][START_RIGHT] += row["icp_start_right"]
+                    held = icp_from_truth_error(best, fr.features[:, :3], objects, cfg, inst.R[g], inst.t[g],
+                                                err) if near else None
+                    row["icp_from_truth_right"] = held is not None and held < a.threshold * dia
+                    per[oid][TRUTH_HOLDS] += row["icp_from_truth_right"]
                 rows.append(row)
     names = {int(o["obj_id"]): o["name"] for o in report.get("objects", [])}
     print(f"{len(rows)} missed instances of {len(report['instances'])} ({a.report}), by where they were lost:")

@@ -89,6 +89,35 @@ def test_icp_start_errors_tell_a_right_start_from_the_wrong_pose(repo_script):
     assert p.icp_start_errors(few, cloud, objects, cfg, error) == []
 
 
+def test_icp_from_truth_tells_the_points_from_the_starts(repo_script):
+    """ICP from the true pose on a detection's points stays right when the points are the object's visible surface,
+    and leaves it when they are another surface (the same object's points moved 6 cm); too few points: None."""
+    from argen.models.objects import builtin_objects
+    from test_geometry import visible_surface
+
+    from detector.geometry.types import GeometryConfig, ObjectInfo
+
+    p = repo_script("bench/probe_misses.py")
+    rng = np.random.default_rng(5)
+    obj = builtin_objects(["drill"])[0]
+    model = np.asarray(obj.mesh.sample(1500, seed=6))
+    objects = ObjectInfo({5: obj.control_points}, {5: obj.diameter}, {5: model})
+    R, t = Rotation.from_euler("xyz", [-40, 25, 10], degrees=True).as_matrix(), np.array([-0.03, 0.02, 0.7])
+    error = lambda d: add(model, R, t, d.R, d.t)  # noqa: E731
+    wrong = Rotation.from_euler("x", 120, degrees=True).as_matrix() @ R
+    own = visible_surface(obj, R, t, 3000, rng)
+    d = Detection(obj_id=5, score=0.5, R=wrong, t=t, support=5, control_points=obj.control_points @ wrong.T + t,
+                  members=np.arange(5), points=np.arange(len(own)))
+    cfg = GeometryConfig(icp=True)
+    assert error(d) > 0.3 * obj.diameter
+    assert p.icp_from_truth_error(d, own, objects, cfg, R, t, error) < 0.02 * obj.diameter
+    elsewhere = own + np.array([0.06, 0.0, 0.0])  # the points of something else: ICP follows them off the truth
+    assert p.icp_from_truth_error(d, elsewhere, objects, cfg, R, t, error) > 0.1 * obj.diameter
+    few = replace(d, points=np.arange(cfg.icp_min_points - 1))
+    assert p.icp_from_truth_error(few, own, objects, cfg, R, t, error) is None
+    assert p.TRUTH_HOLDS in p.COLUMNS and p.TRUTH_HOLDS not in p.CAUSES
+
+
 def test_missed_instances_follow_the_label_files_order_per_object(repo_script):
     p = repo_script("bench/probe_misses.py")
     rows = [{"frame": f, "obj_id": o, "diameter": d, "icp": e} for f, o, d, e in
