@@ -14,6 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
+from argen.fileio import atomic_path
 from detector.errors import DetectorError
 from detector.evaluation.metrics import THRESHOLDS
 
@@ -269,13 +270,16 @@ def json_safe(value):
 
 def write_report(out_dir: Path, summary: dict, curves: dict, bop_rows: list[dict]) -> dict[str, Path]:
     """Write report.md, report.json, curve.png, the BOP CSV (``summary['bop_csv']``) and, when summary["bop19"]
-    holds the scores, scores_bop19.json (the BOP toolkit's keys) into ``out_dir``."""
+    holds the scores, scores_bop19.json (the BOP toolkit's keys) into ``out_dir``. report.json, which says how the
+    report was made (``detector eval --reuse`` reads it), goes first from the folder and comes back last, whole (a
+    temporary file renamed): a run killed while writing leaves no report.json beside the other files."""
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     paths = {"md": out_dir / "report.md", "json": out_dir / "report.json", "curve": out_dir / "curve.png",
              "bop": out_dir / summary["bop_csv"]}
+    paths["json"].unlink(missing_ok=True)
+    text = json.dumps(json_safe(summary), indent=2, allow_nan=False) + "\n"  # a summary it cannot write: before
     paths["md"].write_text(markdown(summary))
-    paths["json"].write_text(json.dumps(json_safe(summary), indent=2, allow_nan=False) + "\n")
     b = summary.get("bop19") or {}
     if "skipped" not in b and b:
         paths["bop19"] = out_dir / "scores_bop19.json"
@@ -285,4 +289,6 @@ def write_report(out_dir: Path, summary: dict, curves: dict, bop_rows: list[dict
         (out_dir / "scores_bop19.json").unlink(missing_ok=True)
     plot_curve(curves, paths["curve"])
     write_bop_csv(paths["bop"], bop_rows)
+    with atomic_path(paths["json"]) as tmp:
+        tmp.write_text(text)
     return paths

@@ -313,6 +313,26 @@ def test_cli_eval_and_predict_with_a_random_network(random_checkpoint, dataset, 
     assert not (tmp_path / "pred2").exists()
 
 
+def test_a_report_killed_while_written_leaves_no_report_json(label_file, tmp_path, monkeypatch):
+    """report.json, which --reuse trusts, leaves the folder before the other files are written and comes back last:
+    a run that dies in between leaves none, and no temporary file either."""
+    import detector.report as report
+
+    evaluate(oracle_predictor(), label_file, tmp_path, icp=False, bop19=False)
+    assert (tmp_path / "report.json").is_file()
+
+    def dies(*_args, **_kwargs):
+        raise RuntimeError("killed")
+
+    monkeypatch.setattr(report, "write_bop_csv", dies)
+    with pytest.raises(RuntimeError, match="killed"):
+        evaluate(oracle_predictor(), label_file, tmp_path, icp=False, bop19=False)
+    assert not (tmp_path / "report.json").exists() and not list(tmp_path.glob(".tmp-*"))
+    monkeypatch.undo()
+    evaluate(oracle_predictor(), label_file, tmp_path, icp=False, bop19=False)
+    assert json.loads((tmp_path / "report.json").read_text())["f1"]["noicp"]["f1"] == 1.0
+
+
 def test_eval_reuse_keeps_a_report_only_when_the_same_run_made_it(random_checkpoint, label_file, tmp_path):
     """--reuse keeps a report made from the same model and label bytes, settings, seed and options, and evaluates
     again when any of them differs; the report records what made it."""
