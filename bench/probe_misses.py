@@ -3,8 +3,10 @@
 only a centre of another object, or one of its own whose stage-2 pose was then wrong, or right but scored under
 ``min_score``; of the wrong poses, whether ICP from any of its starts (the stage-2 pose, its other verified
 hypotheses, its half turns) would have reached a right one, which tells ICP's choice among its results from stage 2's
-poses, and whether ICP from the true pose on its points stays right, which tells the starts from the points. It reruns the model on the missed instances' frames with the report's settings (give eval's
-``--seed`` and ``--set``) and reads the poses before the score threshold. Usage:
+poses, and whether ICP from the true pose on its points stays right, which tells a failure of the starts from one
+of the points (a detection with too few points for ICP counts as neither). It reruns the model on the missed
+instances' frames with the report's settings (give eval's ``--seed`` and ``--set``) and reads the poses before the
+score threshold. Usage:
 
     python bench/probe_misses.py MODEL LABELS REPORT [--seed S] [--set KEY=V ...] [--min-visib V] [--json OUT]
 

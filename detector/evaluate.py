@@ -5,6 +5,7 @@ dataset (:mod:`detector.evaluation.bop_eval`: BOP19 Average Recall) and writes t
 
 from __future__ import annotations
 
+import math
 import sys
 import time
 from dataclasses import asdict, is_dataclass, replace
@@ -145,16 +146,24 @@ def evaluate(predictor: Predictor, label_path: str | Path, out_dir: str | Path, 
     scores = bop19_summary(bop_rows, images, *source, progress) if bop19 else {"skipped": "not asked for"}
     if "skipped" not in scores:  # how the official toolkit can check these figures (report.md says it)
         scores["toolkit_dataset"] = toolkit_name if csv_name.split("_", 1)[1].startswith(f"{toolkit_name}-") else None
-    return _finish(gt_rows, counts, times, table, cfg, keys, icp, str(label_path), num_frames, bop_rows, out_dir,
-                   device, icp_status if icp else None, csv_name, scores, sampling,
-                   report_settings(cfg, icp, sampling, poser, run)["infer"], run)
+    return _finish(gt_rows, counts, times, table, cfg, keys, str(label_path), num_frames, bop_rows, out_dir,
+                   device, icp_status if icp else None, csv_name, scores,
+                   report_settings(cfg, icp, sampling, poser, run))
 
 
 def report_settings(cfg: GeometryConfig | None, icp: bool, sampling: dict | None, poser, run: dict | None) -> dict:
     """The report.json entries that say how :func:`evaluate` with these arguments makes its report
-    (:data:`detector.report.MADE_BY`), as it records them: ``detector eval --reuse`` compares them with a report's."""
-    return {"run": run, "icp": icp, "config": asdict(replace(cfg or GeometryConfig(), icp=icp)), "sampling": sampling,
-            "infer": asdict(poser.cfg) if is_dataclass(getattr(poser, "cfg", None)) else None}
+    (:data:`detector.report.MADE_BY`), as it records them: ``detector eval --reuse`` compares them with a report's.
+    A non-finite setting is recorded by its name ("inf", "-inf", "nan"): JSON has no number for it, and it must not
+    read back as None, which several settings take to mean something else."""
+    def named(d: dict | None) -> dict | None:
+        if d is None:
+            return None
+        return {k: (str(v) if isinstance(v, float) and not math.isfinite(v) else v) for k, v in d.items()}
+
+    return {"run": run, "icp": icp, "config": named(asdict(replace(cfg or GeometryConfig(), icp=icp))),
+            "sampling": named(sampling),
+            "infer": named(asdict(poser.cfg)) if is_dataclass(getattr(poser, "cfg", None)) else None}
 
 
 def bop19_summary(bop_rows: list[dict], images: set[tuple[int, int]], root, split: str, argen_json: str = "",
@@ -177,8 +186,8 @@ def bop19_summary(bop_rows: list[dict], images: set[tuple[int, int]], root, spli
     return {**res, "dataset": str(root), "split": split, "pixel_centres": pc}
 
 
-def _finish(gt_rows, counts, times, table, cfg, keys, icp, label_file, num_frames, bop_rows, out_dir, device,
-            icp_status=None, csv_name="argen_argen-test.csv", bop19=None, sampling=None, infer=None, run=None) -> dict:
+def _finish(gt_rows, counts, times, table, cfg, keys, label_file, num_frames, bop_rows, out_dir, device,
+            icp_status=None, csv_name="argen_argen-test.csv", bop19=None, settings=None) -> dict:
     """Aggregate per-instance rows into the summary, write the report files and return the summary."""
     objs, curves = [], {}
     for m, oid in enumerate(table.ids.tolist()):
@@ -209,8 +218,7 @@ def _finish(gt_rows, counts, times, table, cfg, keys, icp, label_file, num_frame
     stages = [s for s in STAGES if any(s in t for t in times)]
     timing_ms = {s: 1000 * float(np.mean([t.get(s, 0.0) for t in times])) if times else 0.0 for s in stages}
     timing_ms["total"] = 1000 * float(np.mean([t["total"] for t in times])) if times else 0.0
-    summary = {"label_file": label_file, "num_frames": num_frames, "icp": icp, "config": asdict(cfg),
-               "sampling": sampling, "infer": infer, "run": run,
+    summary = {"label_file": label_file, "num_frames": num_frames, **settings,
                "objects": objs, "mean": mean, "f1": f1, "timing_ms": timing_ms,
                "fps": 1000.0 / timing_ms["total"] if timing_ms["total"] > 0 else float("inf"),
                "device": device, "bop_csv": csv_name, "icp_refinement": icp_status,

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import os
 
 import numpy as np
 import pytest
@@ -12,6 +13,7 @@ from test_data import TINY_MODEL
 from typer.testing import CliRunner
 
 from argen.cli.app import app as argen_app
+from argen.errors import ArgenError
 from argen.h5 import LabelFile
 from argen.label import LabelConfig, LabelRequest, run_label
 from detector.data.augment import NORMALISATION
@@ -327,6 +329,15 @@ def test_a_report_killed_while_written_leaves_no_report_json(label_file, tmp_pat
     monkeypatch.setattr(report, "write_bop_csv", dies)
     with pytest.raises(RuntimeError, match="killed"):
         evaluate(oracle_predictor(), label_file, tmp_path, icp=False, bop19=False)
+    assert not (tmp_path / "report.json").exists()
+    monkeypatch.undo()
+
+    def refused(*_args, **_kwargs):
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(os, "replace", refused)  # the report.json rename itself fails: its temporary file goes too
+    with pytest.raises(ArgenError, match="disk full while writing .*report.json"):
+        evaluate(oracle_predictor(), label_file, tmp_path, icp=False, bop19=False)
     assert not (tmp_path / "report.json").exists() and not list(tmp_path.glob(".tmp-*"))
     monkeypatch.undo()
     evaluate(oracle_predictor(), label_file, tmp_path, icp=False, bop19=False)
@@ -335,49 +346,50 @@ def test_a_report_killed_while_written_leaves_no_report_json(label_file, tmp_pat
 
 def test_eval_reuse_keeps_a_report_only_when_the_same_run_made_it(random_checkpoint, label_file, tmp_path):
     """--reuse keeps a report made from the same model and label bytes, settings, seed and options, and evaluates
-    again when any of them differs; the report records what made it."""
+    again when any one of them differs from the run that made it; the report records what made it."""
     import shutil
 
     from detector.cli.app import app
 
     runner, rep = CliRunner(), tmp_path / "rep"
-    base = ["eval", str(random_checkpoint), str(label_file), "--out", str(rep), "--frames", "1", "--tau", "0",
-            "--quiet", "--reuse"]
+    base = [str(label_file), "--frames", "1", "--tau", "0", "--quiet", "--reuse"]
 
-    def run(*extra: str) -> tuple[str, float]:
-        r = runner.invoke(app, base + list(extra))
+    def run(out, *extra: str, model=random_checkpoint) -> tuple[str, int]:
+        r = runner.invoke(app, ["eval", str(model), *base, "--out", str(out), *extra])
         assert r.exit_code == 0, r.output
-        return r.output, (rep / "report.json").stat().st_mtime_ns
+        return r.output, (out / "report.json").stat().st_mtime_ns
 
-    out, made = run()
+    out, made = run(rep)
     assert "up to date" not in out
     js = json.loads((rep / "report.json").read_text())
     assert js["run"]["seed"] == 0 and js["run"]["frames"] == 1
     assert js["run"]["model"]["sha256"] == hashlib.sha256(random_checkpoint.read_bytes()).hexdigest()
     assert js["run"]["labels"]["bytes"] == label_file.stat().st_size
-    out, again = run()
+    out, again = run(rep)
     assert "up to date" in out and again == made  # nothing evaluated, nothing written
     copy = tmp_path / "copy.pt"  # the same bytes under another name: the same model
     shutil.copy(random_checkpoint, copy)
-    r = runner.invoke(app, ["eval", str(copy)] + base[2:])
-    assert r.exit_code == 0 and "up to date" in r.output, r.output
-    for extra in (["--seed", "1"], ["--set", "geometry.min_votes=4"], ["--set", "sampling.passes=2"],
-                  ["--min-score", "0.3"], ["--min-visib", "0.2"], ["--icp"]):
-        out, now = run(*extra)
-        assert "up to date" not in out and now != made, extra
-        made = now
-    # another model's bytes, and a report from before reports recorded their run: evaluated again
-    other = tmp_path / "other.pt"
+    assert "up to date" in run(rep, model=copy)[0]
+    other = tmp_path / "other.pt"  # another model's bytes
     ck = torch.load(random_checkpoint, weights_only=False)
     ck["step"] = 1
     torch.save(ck, other)
-    r = runner.invoke(app, ["eval", str(other)] + base[2:] + ["--icp"])
-    assert r.exit_code == 0 and "up to date" not in r.output, r.output
+    changes = [["--seed", "1"], ["--set", "geometry.min_votes=4"], ["--set", "sampling.passes=2"],
+               ["--min-score", "0.3"], ["--min-visib", "0.2"], ["--icp"],
+               ["--set", "geometry.min_score_unrefined=.inf"]]
+    for k, extra in enumerate(changes):  # each against the base run's report
+        shutil.copytree(rep, tmp_path / f"r{k}")
+        assert "up to date" not in run(tmp_path / f"r{k}", *extra)[0], extra
+    assert "up to date" not in run(tmp_path / "r0", model=other)[0]
+    # a setting that is infinite is not read back as the default None
+    inf = tmp_path / f"r{len(changes) - 1}"
+    assert json.loads((inf / "report.json").read_text())["config"]["min_score_unrefined"] == "inf"
+    assert "up to date" not in run(inf)[0]
+    # a report from before reports recorded their run: evaluated again
     js = json.loads((rep / "report.json").read_text())
     js.pop("run")
     (rep / "report.json").write_text(json.dumps(js))
-    r = runner.invoke(app, ["eval", str(other)] + base[2:] + ["--icp"])
-    assert "up to date" not in r.output and "run" in json.loads((rep / "report.json").read_text())
+    assert "up to date" not in run(rep)[0] and "run" in json.loads((rep / "report.json").read_text())
 
 
 def assert_one_line_error(r, *words: str) -> None:

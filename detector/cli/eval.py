@@ -61,9 +61,9 @@ def register(app: typer.Typer) -> None:
         from detector.checkpoint import load_checkpoint
         from detector.data.frames import open_label_file
         from detector.evaluate import evaluate, report_settings
-        from detector.report import made_alike, previous_report, run_record
         from detector.infer import (check_label_objects, checkpoint_geometry_config, checkpoint_objects,
                                     checkpoint_poser, split_sets)
+        from detector.report import made_alike, previous_report, run_record
         from detector.stage1.predictor import network_predictor
 
         if frames is not None and frames < 1:
@@ -78,10 +78,12 @@ def register(app: typer.Typer) -> None:
             if n == 0:
                 raise DetectorError(f"{data} holds no frames")
             check_label_objects(ckpt, lf.objects)
+            scored_on = bop_dataset or lf.attrs.get("source_dataset") or None  # BOP19 AR's dataset, as evaluate's
         objects = checkpoint_objects(ckpt)[0]
         poser = checkpoint_poser(ckpt, objects, device, seed, infer_sets)
         run = run_record(checkpoint, data, seed=seed, device=device, min_visib=min_visib, frames=frames, method=method,
-                         dataset_name=dataset_name, bop_dataset=None if bop_dataset is None else str(bop_dataset))
+                         dataset_name=dataset_name, bop_dataset=None if bop_dataset is None else str(bop_dataset),
+                         bop_dataset_found=bool(scored_on) and Path(scored_on).is_dir())
         if reuse and made_alike(previous_report(out), report_settings(cfg, icp, ckpt.sampling_used, poser, run)):
             typer.echo(f"{out / 'report.md'} is up to date: made from the same model, label file, settings and seed")
             return

@@ -330,8 +330,8 @@ if [ "${PAPER:-0}" = 1 ]; then
   else
     $D train "$OUT/lm_train16k.h5" --out runs/lm_cpu --preset cpu --steps 9500 --workers 1 --set checkpoint_every=250
   fi
-  $D eval runs/lm_cpu/last.pt "$OUT/lm_test.h5"   --out reports/lm_test_tau0 --icp --tau 0 --quiet
-  $D eval runs/lm_cpu/last.pt "$OUT/lchf_test.h5" --out reports/lchf_test_tau0 --icp --tau 0 --quiet
+  $D eval --reuse runs/lm_cpu/last.pt "$OUT/lm_test.h5"   --out reports/lm_test_tau0 --icp --tau 0 --quiet
+  $D eval --reuse runs/lm_cpu/last.pt "$OUT/lchf_test.h5" --out reports/lchf_test_tau0 --icp --tau 0 --quiet
 fi
 
 # 6. the tables of RESULTS.md (with the paper's numbers beside ours)

@@ -85,7 +85,7 @@ elif [ ! -f "$RUN/model.pt" ]; then
 fi
 # 4. the real frames, without and with ICP (checkpoints/ycbv3.pt is $RUN/model.pt, run from nothing), and where the
 #    misses were lost
-$D eval "$RUN/model.pt" "$OUT/ycbv_real.h5" --out "$REP" --icp --min-visib 0 --quiet
+$D eval --reuse "$RUN/model.pt" "$OUT/ycbv_real.h5" --out "$REP" --icp --min-visib 0 --quiet
 .venv/bin/python bench/probe_misses.py "$RUN/model.pt" "$OUT/ycbv_real.h5" "$REP/report.json" --min-visib 0
 [ -z "${MODEL_ONLY:-}" ] || exit 0
 # 5. training length: each kept stage-2 snapshot with the run's stage 1, on the real frames
