@@ -392,6 +392,31 @@ def test_eval_reuse_keeps_a_report_only_when_the_same_run_made_it(random_checkpo
     assert "up to date" not in run(rep)[0] and "run" in json.loads((rep / "report.json").read_text())
 
 
+def test_eval_reuse_evaluates_again_once_the_bop_dataset_is_there(random_checkpoint, dataset, tmp_path):
+    """A report whose BOP19 AR was skipped because the BOP dataset folder was gone is not kept once it is back."""
+    import shutil
+
+    import h5py
+
+    from detector.cli.app import app
+
+    ds, h5 = dataset
+    copy, labels = tmp_path / "ds", tmp_path / "labels.h5"
+    shutil.copytree(ds, copy)
+    shutil.copy(h5, labels)
+    with h5py.File(labels, "r+") as f:
+        f.attrs["source_dataset"] = str(copy)
+    args = ["eval", str(random_checkpoint), str(labels), "--out", str(tmp_path / "rep"), "--frames", "1", "--tau",
+            "0", "--quiet", "--reuse"]
+    copy.rename(tmp_path / "gone")
+    r = CliRunner().invoke(app, args)
+    assert r.exit_code == 0 and "BOP19 AR not computed" in r.output, r.output
+    assert "up to date" in CliRunner().invoke(app, args).output  # still gone: nothing to do
+    (tmp_path / "gone").rename(copy)
+    r = CliRunner().invoke(app, args)
+    assert r.exit_code == 0 and "up to date" not in r.output and "BOP19 AR: " in r.output, r.output
+
+
 def assert_one_line_error(r, *words: str) -> None:
     lines = r.stderr.strip().splitlines()
     assert r.exit_code == 2 and len(lines) == 1 and lines[0].startswith("detector: error: "), r.output
