@@ -30,6 +30,14 @@ INFER=(--set sampling.passes=1 --set geometry.min_votes=3)
 # model files they train keep it (BEFORE)
 BEFORE=(--set sampling.fps=trained)
 step() { local name=$1; shift; local t0; t0=$(date +%s); "$@"; echo "$name $(( $(date +%s) - t0 )) s" >> "$T"; }
+# real_seeds MODEL PREFIX [EVAL OPTIONS]: MODEL on the real frames with ICP, sampling seeds 0-7, into PREFIX-SEED (each
+# report kept while it was made the same way: --reuse)
+real_seeds() {
+  local model=$1 prefix=$2 seed; shift 2
+  for seed in 0 1 2 3 4 5 6 7; do
+    $D eval --reuse "$model" "$OUT/ycbv_real.h5" --out "$prefix-$seed" --icp --min-visib 0 --quiet --seed $seed "$@"
+  done
+}
 # train_beside KEEP R YAML [TRAIN OPTIONS]: the run folder R holds a copy of the run's finished stage KEEP (stage1 or
 # stage2) and YAML as its two_stage.yaml, and is trained on the capture with distractors (resumed: the finished stage
 # is not trained again), unless its model.pt exists (steps 6d, 6e, 6f and 7); with the run's inference (INFER) and the
@@ -131,10 +139,7 @@ for a in "default:" "trained_fps:" "verify_32:infer.verify=32" "before_half_turn
   name=${a%%:*}; sets=()
   case $name in default|verify_32) ;; *) sets=("${BEFORE[@]}") ;; esac
   for kv in ${a#*:}; do sets+=(--set "$kv"); done
-  for seed in 0 1 2 3 4 5 6 7; do
-    $D eval --reuse "$RUN/model.pt" "$OUT/ycbv_real.h5" \
-      --out "$REP/seeds/$name-$seed" --icp --min-visib 0 --quiet --seed $seed "${sets[@]}"
-  done
+  real_seeds "$RUN/model.pt" "$REP/seeds/$name" "${sets[@]}"
 done
 .venv/bin/python examples/ycbv_real/seeds.py "$REP/seeds"
 # 6d. stage 2's colour input (RESULTS.md, "A stage 2 without colour"): stage 2 alone trained again beside the run's
@@ -149,10 +154,7 @@ for variant in camera:camera:true:0:0 none_own_symmetries:none:false:0:0 none_se
   IFS=: read -r name colour turns s2seed negatives <<< "$variant"; r="$RUN-s2-$name"
   train_beside stage1 "$r" "$(printf 'stage1:\n  colour: none\n  plane_keep: 0.1\nstage2:\n  crop.colour: %s\n  crop.shape_turns: %s\n  crop.negatives: %s\n  crop.part_turns: false\n  seed: %s\n  steps: %s\n  keep_every: 2000' \
     "$colour" "$turns" "$negatives" "$s2seed" "$S2STEPS")"
-  for seed in 0 1 2 3 4 5 6 7; do
-    $D eval --reuse "$r/model.pt" "$OUT/ycbv_real.h5" \
-      --out "$REP/seeds_stage2/$name-$seed" --icp --min-visib 0 --quiet --seed $seed --set geometry.part_check=false
-  done
+  real_seeds "$r/model.pt" "$REP/seeds_stage2/$name" --set geometry.part_check=false
   $D eval --reuse "$r/model.pt" "$OUT/ycbv_simtest.h5" \
     --out "$REP/simtest_s2_$name" --icp --quiet --set geometry.part_check=false
 done
@@ -169,10 +171,7 @@ for variant in plane_keep_1:1.0:0 plane_seed_1:0.1:1; do
   name=${variant%%:*}; keep=$(echo "$variant" | cut -d: -f2); s1seed=${variant##*:}; r="$RUN-s1-$name"
   train_beside stage2 "$r" "$(printf 'stage1:\n  colour: none\n  plane_keep: %s\n  seed: %s\nstage2:\n  crop.colour: %s\n  steps: %s\n  keep_every: 2000' \
     "$keep" "$s1seed" "$S2COLOUR" "$S2STEPS")" --stage1-data "$OUT/ycbv_stage1.h5"
-  for seed in 0 1 2 3 4 5 6 7; do
-    $D eval --reuse "$r/model.pt" "$OUT/ycbv_real.h5" \
-      --out "$REP/seeds_plane/$name-$seed" --icp --min-visib 0 --quiet --seed $seed
-  done
+  real_seeds "$r/model.pt" "$REP/seeds_plane/$name"
   $D eval --reuse "$r/model.pt" "$OUT/ycbv_simtest.h5" --out "$REP/simtest_$name" \
     --icp --quiet
 done
@@ -207,11 +206,7 @@ r="$RUN-s2-no_part_turns"
 train_beside stage1 "$r" "$(printf 'stage1:\n  colour: none\n  plane_keep: 0.1\nstage2:\n  crop.colour: none\n  crop.part_turns: false\n  steps: %s\n  keep_every: 2000' "$S2STEPS")"
 for a in "no_part_turns:$r" "no_part_check:$RUN"; do
   name=${a%%:*}; m=${a#*:}
-  for seed in 0 1 2 3 4 5 6 7; do
-    $D eval --reuse "$m/model.pt" "$OUT/ycbv_real.h5" \
-      --out "$REP/seeds_parts/$name-$seed" --icp --min-visib 0 --quiet --seed $seed --set geometry.part_check=false \
-      "${BEFORE[@]}"
-  done
+  real_seeds "$m/model.pt" "$REP/seeds_parts/$name" --set geometry.part_check=false "${BEFORE[@]}"
   $D eval --reuse "$m/model.pt" "$OUT/ycbv_simtest.h5" --out "$REP/simtest_$name" \
     --icp --quiet --set geometry.part_check=false "${BEFORE[@]}"
 done
@@ -229,10 +224,7 @@ if [ "${S2LENGTH:-0}" = 1 ]; then
     steps=${variant%%:*}; s2seed=${variant##*:}; name="steps_${steps}_seed_$s2seed"; r="$RUN-s2-$name"
     train_beside stage1 "$r" "$(printf 'stage1:\n  colour: none\n  plane_keep: 0.1\nstage2:\n  crop.colour: none\n  seed: %s\n  steps: %s\n  keep_every: 2000' \
       "$s2seed" "$steps")"
-    for seed in 0 1 2 3 4 5 6 7; do
-      $D eval --reuse "$r/model.pt" "$OUT/ycbv_real.h5" \
-        --out "$REP/seeds_length/$name-$seed" --icp --min-visib 0 --quiet --seed $seed --set sampling.fps=tree
-    done
+    real_seeds "$r/model.pt" "$REP/seeds_length/$name" --set sampling.fps=tree
     $D eval --reuse "$r/model.pt" "$OUT/ycbv_simtest.h5" --out "$REP/simtest_$name" \
       --icp --quiet --set sampling.fps=tree
   done
@@ -255,30 +247,19 @@ if [ "${DESK:-0}" = 1 ]; then
     r="$RUN-s1-desk_things_seed_$s1seed"
     train_beside stage2 "$r" "$(printf 'stage1:\n  colour: none\n  plane_keep: 0.1\n  seed: %s\nstage2:\n  crop.colour: none\n  steps: %s\n  keep_every: 2000' \
       "$s1seed" "$S2STEPS")" --stage1-data "$OUT/ycbv_stage1_desk.h5"
-    for seed in 0 1 2 3 4 5 6 7; do
-      $D eval --reuse "$r/model.pt" \
-        "$OUT/ycbv_real.h5" --out "$REP/seeds_desk/desk_things_seed_$s1seed-$seed" --icp --min-visib 0 --quiet \
-        --seed $seed --set sampling.fps=tree
-    done
+    real_seeds "$r/model.pt" "$REP/seeds_desk/desk_things_seed_$s1seed" --set sampling.fps=tree
     $D eval --reuse "$r/model.pt" "$OUT/ycbv_simtest.h5" \
       --out "$REP/simtest_desk_things_seed_$s1seed" --icp --quiet --set sampling.fps=tree
     .venv/bin/python bench/probe_stage1.py "$r/model.pt" "$OUT/ycbv_real.h5" --frames 10 --min-visib 0
   done
-  for seed in 0 1 2 3 4 5 6 7; do
-    $D eval --reuse "$RUN/model.pt" "$OUT/ycbv_real.h5" \
-      --out "$REP/seeds_desk/shipped-$seed" --icp --min-visib 0 --quiet --seed $seed --set sampling.fps=tree
-  done
+  real_seeds "$RUN/model.pt" "$REP/seeds_desk/shipped" --set sampling.fps=tree
   .venv/bin/python examples/ycbv_real/seeds.py "$REP/seeds_desk"
 fi
 # 6i. the surface-continuation check (RESULTS.md, "Poses on part of a larger thing"; on by default since
 #     2026-12-07): the shipped model without it (`geometry.continuation_check=false`), seeds 0-7 on the real frames
 #     and the simulated test capture, beside step 6c's rows with it
 if [ "${CONTINUATION:-0}" = 1 ]; then
-  for seed in 0 1 2 3 4 5 6 7; do
-    $D eval --reuse "$RUN/model.pt" \
-      "$OUT/ycbv_real.h5" --out "$REP/seeds_continuation/no_continuation-$seed" --icp --min-visib 0 --quiet \
-      --seed $seed --set geometry.continuation_check=false
-  done
+  real_seeds "$RUN/model.pt" "$REP/seeds_continuation/no_continuation" --set geometry.continuation_check=false
   .venv/bin/python examples/ycbv_real/seeds.py "$REP/seeds_continuation"
   $D eval --reuse "$RUN/model.pt" "$OUT/ycbv_simtest.h5" \
     --out "$REP/simtest_no_continuation" --icp --quiet --set geometry.continuation_check=false
@@ -320,10 +301,7 @@ if [ "${DEFAULT_RECIPE:-0}" = 1 ]; then
   done
   for name in default default_s1 default_s2 G1 G2 MIX OFF OFFG; do
     model=$REP/recipe_$name.pt; [ $name = default ] && model=$X/model.pt
-    for seed in 0 1 2 3 4 5 6 7; do
-      $D eval --reuse "$model" "$OUT/ycbv_real.h5" \
-        --out "$REP/seeds_recipe/$name-$seed" --icp --min-visib 0 --quiet --seed $seed
-    done
+    real_seeds "$model" "$REP/seeds_recipe/$name"
   done
   .venv/bin/python examples/ycbv_real/seeds.py "$REP/seeds_recipe"
   $D eval --reuse "$X/model.pt" "$OUT/ycbv_simtest.h5" \
@@ -336,10 +314,7 @@ fi
 if [ "${APART:-0}" = 1 ]; then
   for v in "apart:geometry.nms_across_objects=false" "oc0.2:geometry.other_classes=0.2" \
            "oc0.3:geometry.other_classes=0.3"; do
-    for seed in 0 1 2 3 4 5 6 7; do
-      $D eval --reuse "$RUN/model.pt" "$OUT/ycbv_real.h5" \
-        --out "$REP/seeds_apart/${v%%:*}-$seed" --icp --min-visib 0 --quiet --seed $seed --set "${v#*:}"
-    done
+    real_seeds "$RUN/model.pt" "$REP/seeds_apart/${v%%:*}" --set "${v#*:}"
   done
   .venv/bin/python examples/ycbv_real/seeds.py "$REP/seeds_apart"
 fi
@@ -349,10 +324,7 @@ fi
 if [ "${REACH:-0}" = 1 ]; then
   for v in "former:geometry.icp_distance=0.2 geometry.min_score=0.65" "reach0.1:geometry.min_score=0.65"; do
     sets=(); for kv in ${v#*:}; do sets+=(--set "$kv"); done
-    for seed in 0 1 2 3 4 5 6 7; do
-      $D eval --reuse "$RUN/model.pt" "$OUT/ycbv_real.h5" \
-        --out "$REP/seeds_reach/${v%%:*}-$seed" --icp --min-visib 0 --quiet --seed $seed "${sets[@]}"
-    done
+    real_seeds "$RUN/model.pt" "$REP/seeds_reach/${v%%:*}" "${sets[@]}"
   done
   .venv/bin/python examples/ycbv_real/seeds.py "$REP/seeds_reach"
 fi
