@@ -73,36 +73,39 @@ def miss_cause(obj_id: int, centre: np.ndarray, diameter: float, stage1: list[De
     return CAUSES[4] if best.score < min_score else CAUSES[5]
 
 
-def icp_start_errors(detection: Detection, cloud: np.ndarray, objects: ObjectInfo, cfg: GeometryConfig, error
-                     ) -> list[float]:
-    """The pose error (metres, ``error`` of a detection) of ICP's result from each of an unrefined two-stage
-    detection's starts (:func:`detector.geometry.icp.icp_starts`), on the points ICP takes of its own points
-    (``detection.points``, rows of ``cloud`` (M,3) camera metres); as :func:`detector.geometry.icp.refine` runs them,
-    before it chooses among the results by their fit. Empty when the detection has too few points for ICP."""
+def icp_errors_from(detection: Detection, cloud: np.ndarray, objects: ObjectInfo, cfg: GeometryConfig,
+                    starts: list, error) -> list[float]:
+    """The pose error (metres, ``error`` of a detection) of ICP's result from each start [(R (3,3), t (3,) metres),
+    ...] on the points ICP takes of an unrefined two-stage detection's own points (``detection.points``, rows of
+    ``cloud`` (M,3) camera metres), as :func:`detector.geometry.icp.refine` runs each start. Empty when the
+    detection has too few points for ICP."""
     if detection.points is None or len(detection.points) < cfg.icp_min_points:
         return []
-    oid = detection.obj_id
     pts = icp_points(np.asarray(cloud)[detection.points], cfg)
     out = []
-    for R0, t0 in icp_starts(oid, detection.R, detection.t, objects, cfg, detection.alternatives):
-        R, t = icp_from_start(pts, oid, R0, t0, objects, cfg)
+    for R0, t0 in starts:
+        R, t = icp_from_start(pts, detection.obj_id, np.asarray(R0, np.float64), np.asarray(t0, np.float64),
+                              objects, cfg)
         out.append(float(error(replace(detection, R=R, t=t))))
     return out
 
 
+def icp_start_errors(detection: Detection, cloud: np.ndarray, objects: ObjectInfo, cfg: GeometryConfig, error
+                     ) -> list[float]:
+    """:func:`icp_errors_from` the detection's own starts (:func:`detector.geometry.icp.icp_starts`: its pose, its
+    other verified hypotheses, its half turns), before :func:`detector.geometry.icp.refine` chooses among the results
+    by their fit. Empty when the detection has too few points for ICP."""
+    starts = icp_starts(detection.obj_id, detection.R, detection.t, objects, cfg, detection.alternatives)
+    return icp_errors_from(detection, cloud, objects, cfg, starts, error)
+
+
 def icp_from_truth_error(detection: Detection, cloud: np.ndarray, objects: ObjectInfo, cfg: GeometryConfig,
                          R_true: np.ndarray, t_true: np.ndarray, error) -> float | None:
-    """The pose error (metres, ``error`` of a detection) of ICP run from the true pose (R_true (3,3), t_true (3,)
-    metres) on the points ICP takes of an unrefined two-stage detection's own points (rows of ``cloud`` (M,3) camera
-    metres), as :func:`icp_start_errors` runs each start: small when those points hold the true pose (the detection
-    failed at its starts), large when they pull away from it (its points are wrong). None when the detection has too
-    few points for ICP."""
-    if detection.points is None or len(detection.points) < cfg.icp_min_points:
-        return None
-    pts = icp_points(np.asarray(cloud)[detection.points], cfg)
-    R, t = icp_from_start(pts, detection.obj_id, np.asarray(R_true, np.float64), np.asarray(t_true, np.float64),
-                          objects, cfg)
-    return float(error(replace(detection, R=R, t=t)))
+    """:func:`icp_errors_from` the true pose (R_true (3,3), t_true (3,) metres) alone: small when the detection's
+    points hold the true pose (it failed at its starts), large when they pull away from it (its points are wrong).
+    None when the detection has too few points for ICP."""
+    errors = icp_errors_from(detection, cloud, objects, cfg, [(R_true, t_true)], error)
+    return errors[0] if errors else None
 
 
 def missed_instances(report: dict, threshold: float) -> dict[int, list[tuple[int, int]]]:

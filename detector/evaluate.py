@@ -84,7 +84,7 @@ def evaluate(predictor: Predictor, label_path: str | Path, out_dir: str | Path, 
     images: set[tuple[int, int]] = set()
     with LabelFile(label_path) as lf:
         split = str(lf.attrs.get("source_split") or "test")
-        root = bop_dataset or lf.attrs.get("source_dataset") or None
+        root = scored_dataset(lf, bop_dataset)
         toolkit_name = toolkit_dataset_name(root, split) if root else None
         csv_name = bop_csv_name(method, dataset_name or toolkit_name or default_dataset_name(
             lf.attrs.get("source_dataset", "")), split)
@@ -146,9 +146,15 @@ def evaluate(predictor: Predictor, label_path: str | Path, out_dir: str | Path, 
     scores = bop19_summary(bop_rows, images, *source, progress) if bop19 else {"skipped": "not asked for"}
     if "skipped" not in scores:  # how the official toolkit can check these figures (report.md says it)
         scores["toolkit_dataset"] = toolkit_name if csv_name.split("_", 1)[1].startswith(f"{toolkit_name}-") else None
-    return _finish(gt_rows, counts, times, table, cfg, keys, str(label_path), num_frames, bop_rows, out_dir,
+    return _finish(gt_rows, counts, times, table, keys, str(label_path), num_frames, bop_rows, out_dir,
                    device, icp_status if icp else None, csv_name, scores,
                    report_settings(cfg, icp, sampling, poser, run))
+
+
+def scored_dataset(label_file: LabelFile, bop_dataset: str | Path | None = None) -> str | Path | None:
+    """The BOP dataset folder whose targets BOP19 AR is scored on: ``bop_dataset`` where given, else the one the open
+    ``label_file`` was made from (None: neither names one)."""
+    return bop_dataset or label_file.attrs.get("source_dataset") or None
 
 
 def report_settings(cfg: GeometryConfig | None, icp: bool, sampling: dict | None, poser, run: dict | None) -> dict:
@@ -186,7 +192,7 @@ def bop19_summary(bop_rows: list[dict], images: set[tuple[int, int]], root, spli
     return {**res, "dataset": str(root), "split": split, "pixel_centres": pc}
 
 
-def _finish(gt_rows, counts, times, table, cfg, keys, label_file, num_frames, bop_rows, out_dir, device,
+def _finish(gt_rows, counts, times, table, keys, label_file, num_frames, bop_rows, out_dir, device,
             icp_status=None, csv_name="argen_argen-test.csv", bop19=None, settings=None) -> dict:
     """Aggregate per-instance rows into the summary, write the report files and return the summary."""
     objs, curves = [], {}

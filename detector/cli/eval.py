@@ -60,7 +60,7 @@ def register(app: typer.Typer) -> None:
         # lazy: torch and open3d load in seconds; `detector --help` and the other commands do not need them
         from detector.checkpoint import load_checkpoint
         from detector.data.frames import open_label_file
-        from detector.evaluate import evaluate, report_settings
+        from detector.evaluate import evaluate, report_settings, scored_dataset
         from detector.infer import (check_label_objects, checkpoint_geometry_config, checkpoint_objects,
                                     checkpoint_poser, split_sets)
         from detector.report import made_alike, previous_report, run_record
@@ -78,7 +78,7 @@ def register(app: typer.Typer) -> None:
             if n == 0:
                 raise DetectorError(f"{data} holds no frames")
             check_label_objects(ckpt, lf.objects)
-            scored_on = bop_dataset or lf.attrs.get("source_dataset") or None  # BOP19 AR's dataset, as evaluate's
+            scored_on = scored_dataset(lf, bop_dataset)
         objects = checkpoint_objects(ckpt)[0]
         poser = checkpoint_poser(ckpt, objects, device, seed, infer_sets)
         run = run_record(checkpoint, data, seed=seed, device=device, min_visib=min_visib, frames=frames, method=method,
