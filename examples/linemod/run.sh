@@ -66,15 +66,22 @@ eval_captures() {
     eval_run "$r" "$OUT/$d.h5" "reports/$n-$d" "" "$@"
   done
 }
+# seeds_beside RUN NAME "KEY=VALUE ...": RUN's eval_run with those --set values on the linemod test capture with
+# sampling seed 1 and the LC-HF-style one with seeds 1 and 2, into reports/NAME_test_seed1 and
+# reports/NAME_lchf_seedS, each report once: the other seeds beside seed 0's reports
+seeds_beside() {
+  local r=$1 n=$2 v=$3 seed
+  eval_run "$r" "$OUT/lm_test.h5" "reports/${n}_test_seed1" "$v" --seed 1
+  for seed in 1 2; do eval_run "$r" "$OUT/lchf_test.h5" "reports/${n}_lchf_seed$seed" "$v" --seed $seed; done
+}
 # eval_seeds RUN NAME: RUN/model.pt with ICP on the linemod test capture with sampling seeds 0-1, the LC-HF-style
 # one with seeds 0-2 and both validation captures with seeds 0-3, into reports/NAME_test[_seed1],
 # reports/NAME_lchf[_seedS] and reports/NAME_CAPTURE_seedS, each report once (steps 4 and 10)
 eval_seeds() {
   local r=$1 n=$2 seed d
   eval_run "$r" "$OUT/lm_test.h5" "reports/${n}_test" ""
-  eval_run "$r" "$OUT/lm_test.h5" "reports/${n}_test_seed1" "" --seed 1
   eval_run "$r" "$OUT/lchf_test.h5" "reports/${n}_lchf" ""
-  for seed in 1 2; do eval_run "$r" "$OUT/lchf_test.h5" "reports/${n}_lchf_seed$seed" "" --seed $seed; done
+  seeds_beside "$r" "$n" ""
   for seed in 0 1 2 3; do
     for d in lm_val lchf_val; do eval_run "$r" "$OUT/$d.h5" "reports/${n}_${d}_seed$seed" "" --seed $seed; done
   done
@@ -149,9 +156,7 @@ false_alarms runs/lm8_offboard/model.pt
 #    change; RESULTS.md, "The current lm8.pt"; chosen on the validation captures)
 eval_captures runs/lm8_offboard _apart --set "$G.nms_across_objects=false"
 for v in "" "$G.nms_across_objects=false"; do  # sampling seed 1 on the linemod test capture, 1 and 2 on LC-HF's
-  n=lm8_offboard${v:+_apart}
-  eval_run runs/lm8_offboard "$OUT/lm_test.h5" "reports/${n}_test_seed1" "$v" --seed 1
-  for seed in 1 2; do eval_run runs/lm8_offboard "$OUT/lchf_test.h5" "reports/${n}_lchf_seed$seed" "$v" --seed $seed; done
+  seeds_beside runs/lm8_offboard "lm8_offboard${v:+_apart}" "$v"
 done
 #    and fewer other-object copies (`geometry.other_classes` 0.2 and 0.3 instead of 0.1; RESULTS.md, the same paragraph)
 for oc in 0.2 0.3; do
@@ -166,11 +171,7 @@ done
 #    stage 2's colour level (`infer.colour_level`, the default since 2026-12-07's last change; RESULTS.md, "Stage 2's
 #    colour level"): without it on every capture and seed above, and under another camera's colours with and without it
 eval_captures runs/lm8_offboard _flat --set infer.colour_level=false
-eval_run runs/lm8_offboard "$OUT/lm_test.h5" reports/lm8_offboard_flat_test_seed1 "infer.colour_level=false" --seed 1
-for seed in 1 2; do
-  eval_run runs/lm8_offboard "$OUT/lchf_test.h5" "reports/lm8_offboard_flat_lchf_seed$seed" "infer.colour_level=false" \
-    --seed $seed
-done
+seeds_beside runs/lm8_offboard lm8_offboard_flat "infer.colour_level=false"
 .venv/bin/python bench/probe_colour.py runs/lm8_offboard/model.pt "$OUT/lm_val.h5" --set infer.colour_level=false
 .venv/bin/python bench/probe_colour.py runs/lm8_offboard/model.pt "$OUT/lchf_val.h5" --change none darker warm \
   --set infer.colour_level=false
@@ -198,12 +199,10 @@ for v in 0.05 0.07 0.1 0.15 0.2 0.3 k0.02 k0.05; do
   done
 done
 for v in "former:$G.icp_distance=0.2 $G.min_score=0.65" "reach0.1:$G.min_score=0.65"; do
-  n=${v%%:*}
-  eval_run runs/lm8_offboard "$OUT/lm_test.h5" "reports/lm8_$n-test" "${v#*:}"
-  eval_run runs/lm8_offboard "$OUT/lm_test.h5" "reports/lm8_$n-test_seed1" "${v#*:}" --seed 1
-  for seed in 0 1 2; do
-    eval_run runs/lm8_offboard "$OUT/lchf_test.h5" "reports/lm8_$n-lchf_seed$seed" "${v#*:}" --seed $seed
-  done
+  n=lm8_${v%%:*}
+  eval_run runs/lm8_offboard "$OUT/lm_test.h5" "reports/${n}_test" "${v#*:}"
+  eval_run runs/lm8_offboard "$OUT/lchf_test.h5" "reports/${n}_lchf" "${v#*:}"
+  seeds_beside runs/lm8_offboard "$n" "${v#*:}"
   sets_of "${v#*:}"
   false_alarms runs/lm8_offboard/model.pt "${SETS[@]}"
 done
