@@ -365,6 +365,32 @@ def test_edge_convolution_equals_its_definition_per_point():
     assert CropConfig().part_turns is True
 
 
+def test_crop_network_head_is_one_layer_on_the_points_and_the_global_feature():
+    """The head's first layer takes the global feature once a crop: the same outputs, and gradients, as that layer on
+    each point's [local, global] row (the network as it trained before)."""
+    torch.manual_seed(2)
+    net = CropNet(CropNetConfig(width=16, edge_width=24, global_width=20, head_width=32, k=5), 3)
+    feats, cls = torch.randn(4, 30, 9), torch.tensor([0, 2, 1, 2])
+
+    def concatenated(f, c):  # the forward with the global feature written out beside every point
+        n = f.shape[1]
+        x0 = net.point(torch.cat([f, torch.nn.functional.one_hot(c, 3).float()[:, None].expand(-1, n, -1)], -1))
+        idx = knn(f[..., :3], net.cfg.k)
+        x1 = net.edge1(x0, idx)
+        local = torch.cat([x0, x1, net.edge2(x1, idx)], -1)
+        g = net.glob(local).max(dim=1).values
+        out = net.head(torch.cat([local, g[:, None].expand(-1, n, -1)], -1)).reshape(4, n, 3, 4)
+        return out[torch.arange(4), :, c]
+
+    out, ref = net(feats, cls), concatenated(feats, cls)
+    torch.testing.assert_close(out["fg_logit"], ref[..., 0], atol=1e-5, rtol=1e-5)
+    torch.testing.assert_close(out["coords"], ref[..., 1:], atol=1e-5, rtol=1e-5)
+    w = net.head[0][0].weight
+    g1 = torch.autograd.grad(out["coords"].square().sum() + out["fg_logit"].sum(), w)[0]
+    g2 = torch.autograd.grad(ref[..., 1:].square().sum() + ref[..., 0].sum(), w)[0]
+    torch.testing.assert_close(g1, g2, atol=1e-5, rtol=1e-4)
+
+
 def test_roll_about_the_ray_keeps_the_centre_and_model_coordinates():
     rng = np.random.default_rng(1)
     R, t = Rotation.random(random_state=rng).as_matrix(), np.array([0.1, -0.05, 0.9])

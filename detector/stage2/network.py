@@ -141,7 +141,11 @@ class CropNet(nn.Module):
         x2 = self.edge2(x1, idx)
         local = torch.cat([x0, x1, x2], dim=-1)
         gfeat = self.glob(local).max(dim=1).values  # (B, g)
-        out = self.head(torch.cat([local, gfeat[:, None, :].expand(-1, n, -1)], dim=-1))  # (B, n, 4C)
+        # the head's first layer on [local, gfeat]: the global columns once a crop, not once a point (the same map)
+        first, c = self.head[0][0], local.shape[-1]
+        h = nn.functional.linear(local, first.weight[:, :c]) + \
+            nn.functional.linear(gfeat, first.weight[:, c:], first.bias)[:, None, :]
+        out = self.head[1](self.head[0][1:](h))  # (B, n, 4C)
         out = out.reshape(B, n, self.num_classes, 4)
         pick = out[torch.arange(B, device=out.device), :, cls]  # (B, n, 4)
         return {"fg_logit": pick[..., 0], "coords": pick[..., 1:]}
