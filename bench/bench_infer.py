@@ -5,8 +5,12 @@ median per stage and the median of whole frames (ICP included) over ``--frames``
 
 Usage: .venv/bin/python bench/bench_infer.py [--data FILE.h5] [--checkpoint CKPT] [--preset cpu paper]
                                              [--frames 5] [--device cpu|cuda] [--threads N]
+                                             [--net-dtype auto|float32|bfloat16]
                                              [--set geometry.KEY=VALUE ...] [--set sampling.density=D]
                                              [--set infer.KEY=VALUE ...]
+
+``--net-dtype`` is the networks' number format, as ``detector eval --net-dtype`` (default auto: bfloat16 on a CPU
+that multiplies it in hardware); the output line records the one used.
 
 ``--set`` changes the checkpoint's geometry and sampling settings as ``detector eval --set`` does (e.g. the
 inference without the depth check and the other classes: ``--set geometry.depth_check=false --set
@@ -53,11 +57,11 @@ def make_data(tmp: Path) -> Path:
     return out
 
 
-def network_times(ckpt, frames: list, device: str) -> dict[str, float]:
+def network_times(ckpt, frames: list, device: str, net_dtype: str = "float32") -> dict[str, float]:
     """Median seconds of "sampling" and "network" over frames (first frame is a warm-up)."""
     from detector.stage1.predictor import network_predictor
 
-    pred = network_predictor(ckpt, seed=0, device=device)
+    pred = network_predictor(ckpt, seed=0, device=device, net_dtype=net_dtype)
     pred(frames[0])
     runs = [pred(f).timings for f in frames]
     return {k: statistics.median(r[k] for r in runs) for k in ("sampling", "network")}
@@ -84,11 +88,11 @@ def pose_times(frames: list, objects, num_points: int) -> dict[str, float]:
 
 
 def two_stage_times(ck, frames: list, device: str, sets: list[str] | None = None,
-                    infer_sets: dict | None = None) -> dict[str, float]:
+                    infer_sets: dict | None = None, net_dtype: str = "float32") -> dict[str, float]:
     """A two-stage checkpoint end to end on real predictions: median seconds per stage and of the whole frame
     (sampling, network, voting, stage 2, ICP, depth check, colour check with the model's own geometry settings, ``sets`` over
     them), detections per frame and stage 2's crops per frame (the stage-1 detections and their other-class copies
-    it poses)."""
+    it poses); net_dtype: the networks' number format, resolved (detector.net_dtype)."""
     from detector.infer import (checkpoint_geometry_config, checkpoint_objects, checkpoint_poser, estimate,
                                 missing_surfaces)
     from detector.report import STAGES
@@ -98,7 +102,8 @@ def two_stage_times(ck, frames: list, device: str, sets: list[str] | None = None
     cfg = checkpoint_geometry_config(ck, None, True, sets=sets)
     if (warning := missing_surfaces(cfg, objects, "the model")) is not None:
         print(f"warning: {warning}", file=sys.stderr)
-    pred, poser = network_predictor(ck, seed=0, device=device), checkpoint_poser(ck, objects, device, 0, infer_sets)
+    pred = network_predictor(ck, seed=0, device=device, net_dtype=net_dtype)
+    poser = checkpoint_poser(ck, objects, device, 0, infer_sets, net_dtype)
     runs, dets, crops = [], [], []
 
     def counted(found, features, timings=None):
@@ -145,6 +150,8 @@ def main() -> None:
     ap.add_argument("--frames", type=int, default=5)
     ap.add_argument("--device", default="cpu")
     ap.add_argument("--threads", type=int, default=0, help="torch CPU threads (0: torch's default)")
+    ap.add_argument("--net-dtype", default="auto",
+                    help="the networks' number format, as detector eval's --net-dtype: auto, float32 or bfloat16")
     ap.add_argument("--set", dest="sets", action="append", default=[],
                     help="a geometry, sampling or stage-2 inference setting of the checkpoint, "
                          "geometry.KEY=VALUE, sampling.density=D, sampling.passes=N, sampling.fps=trained|tree or "
@@ -159,6 +166,7 @@ def main() -> None:
     from detector.geometry.types import ObjectInfo
     from detector.errors import DetectorError
     from detector.infer import checkpoint_geometry_config, checkpoint_objects, checkpoint_poser, split_sets
+    from detector.net_dtype import resolve_net_dtype
 
     if args.threads:
         torch.set_num_threads(args.threads)
@@ -171,6 +179,7 @@ def main() -> None:
         results = []
         try:
             geometry_sets, sampling, infer_sets = split_sets(args.sets)
+            net_dtype = resolve_net_dtype(args.net_dtype, args.device)
             if sampling and not args.checkpoint:
                 raise DetectorError("--set sampling.* needs --checkpoint (the presets' random networks sample as built)")
             ckpts = [("checkpoint", load_checkpoint(args.checkpoint, args.device, sampling))] if args.checkpoint else \
@@ -185,9 +194,10 @@ def main() -> None:
             raise SystemExit(f"bench_infer.py: {e}") from None
         for name, ck in ckpts:
             if ck.stage2_net is not None:  # a two-stage model: its whole pipeline on its own predictions
-                t = two_stage_times(ck, frames, args.device, geometry_sets, infer_sets)
+                t = two_stage_times(ck, frames, args.device, geometry_sets, infer_sets, net_dtype)
                 ms = {k: round(1000 * v, 1) for k, v in t.items() if k not in ("detections", "crops")}
-                res = {"model": f"{name} (two-stage)", "device": args.device, "threads": torch.get_num_threads(),
+                res = {"model": f"{name} (two-stage)", "device": args.device, "net_dtype": net_dtype,
+                       "threads": torch.get_num_threads(),
                        "sampling": ck.sampling_used,
                        "frame_points": int(statistics.mean(len(f.features) for f in frames)),
                        "detections_per_frame": t["detections"], "stage2_crops_per_frame": t["crops"], "ms": ms,
@@ -195,12 +205,12 @@ def main() -> None:
                 results.append(res)
                 print(json.dumps(res), flush=True)
                 continue
-            net = network_times(ck, frames, args.device)
+            net = network_times(ck, frames, args.device, net_dtype)
             pose = pose_times(frames, objects, ck.num_points)
             ms = {k: 1000 * v for k, v in {**net, **{k: pose[k] for k in ("voting", "kabsch", "icp")}}.items()}
             ms["total_no_icp"] = sum(ms[k] for k in ("sampling", "network", "voting", "kabsch"))
             ms["total"] = ms["total_no_icp"] + ms["icp"]
-            res = {"model": name, "device": args.device, "threads": torch.get_num_threads(),
+            res = {"model": name, "device": args.device, "net_dtype": net_dtype, "threads": torch.get_num_threads(),
                    "num_points": ck.num_points, "frame_points": int(statistics.mean(len(f.features) for f in frames)),
                    "detections_per_frame": pose["detections"], "ms": {k: round(v, 1) for k, v in ms.items()},
                    "fps": round(1000 / ms["total"], 2), "fps_no_icp": round(1000 / ms["total_no_icp"], 2)}

@@ -28,6 +28,7 @@ from detector.checkpoint import load_checkpoint
 from detector.errors import DetectorError
 from detector.infer import (checkpoint_geometry_config, checkpoint_max_depth, checkpoint_objects, checkpoint_poser,
                             missing_surfaces, split_sets)
+from detector.net_dtype import resolve_net_dtype
 from detector.predict import load_input, predict
 from detector.stage1.predictor import network_predictor
 
@@ -46,19 +47,21 @@ def main() -> None:
     ap.add_argument("--set", dest="sets", action="append", default=[],
                     help="a geometry, sampling or stage-2 inference (infer.*) setting of the model, "
                          "as detector predict --set")
+    ap.add_argument("--net-dtype", default="auto", help="the networks' number format, as detector predict --net-dtype")
     a = ap.parse_args()
     torch.set_num_threads(2)
     try:
         sets, sampling, infer_sets = split_sets(a.sets)
+        net_dtype = resolve_net_dtype(a.net_dtype)
         ckpt = load_checkpoint(a.ckpt, "cpu", sampling)
         cfg = checkpoint_geometry_config(ckpt, None, not a.no_icp, None, sets)
         objects, names = checkpoint_objects(ckpt)
-        poser = checkpoint_poser(ckpt, objects, "cpu", 0, infer_sets)
+        poser = checkpoint_poser(ckpt, objects, "cpu", 0, infer_sets, net_dtype)
     except DetectorError as e:
         raise SystemExit(f"false_alarms.py: {e}") from None
     if (warning := missing_surfaces(cfg, objects, a.ckpt)) is not None:
         print(f"warning: {warning}", file=sys.stderr)
-    predictor = network_predictor(ckpt, 0)
+    predictor = network_predictor(ckpt, 0, net_dtype=net_dtype)
     depth = checkpoint_max_depth(ckpt, a.max_depth)
     total = frames = 0
     with tempfile.TemporaryDirectory() as tmp:
@@ -74,6 +77,7 @@ def main() -> None:
             total, frames = total + len(dets), frames + 1
             print(f"{spec}: {len(dets)} " + " ".join(f"{d['name']}:{d['score']:.2f}" for d in dets), flush=True)
     print(f"{total} detections in {frames} frames ({total / max(frames, 1):.2f} a frame), ICP {not a.no_icp}, "
+          f"networks in {net_dtype}, "
           f"points up to {depth if depth is not None else 'any'} m")
 
 

@@ -35,6 +35,7 @@ from detector.geometry.types import Detection, GeometryConfig, ObjectInfo
 from detector.geometry.voting import detect
 from detector.infer import (checkpoint_geometry_config, checkpoint_objects, checkpoint_poser, estimate,
                             missing_surfaces, split_sets)
+from detector.net_dtype import resolve_net_dtype
 from detector.stage1.predictor import network_predictor
 
 #: The causes, in the order a miss is tested for them.
@@ -150,11 +151,13 @@ def main() -> None:
         objects, _ = checkpoint_objects(ck)
         if (warning := missing_surfaces(cfg, objects, a.model)) is not None:
             print(f"warning: {warning}", file=sys.stderr)
-        poser = checkpoint_poser(ck, objects, "cpu", a.seed, infer_sets)
+        # the networks' number format the report was made with (float32 before reports recorded it)
+        net_dtype = resolve_net_dtype((report.get("run") or {}).get("net_dtype") or "float32")
+        poser = checkpoint_poser(ck, objects, "cpu", a.seed, infer_sets, net_dtype)
     except (OSError, ValueError, KeyError, ArgenError, DetectorError) as exc:
         sys.exit(f"probe_misses: {exc}")
     torch.set_num_threads(2)
-    pred = network_predictor(ck, a.seed)
+    pred = network_predictor(ck, a.seed, net_dtype=net_dtype)
     rows, per = [], defaultdict(Counter)
     with LabelFile(a.labels) as lf:
         table = lf.objects

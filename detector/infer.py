@@ -256,11 +256,13 @@ def checkpoint_geometry_config(ckpt, tau: float | None, icp: bool, min_score: fl
     return geometry_config(base.tau if tau is None else tau, icp, base)
 
 
-def checkpoint_poser(ckpt, objects: ObjectInfo, device: str = "cpu", seed: int = 0, sets: dict | None = None):
+def checkpoint_poser(ckpt, objects: ObjectInfo, device: str = "cpu", seed: int = 0, sets: dict | None = None,
+                     net_dtype: str = "float32"):
     """A two-stage checkpoint's stage 2 (:class:`detector.stage2.poser.CropPoser`), or None for a single network.
     sets: ``{"KEY": value}`` over the model's stored stage-2 inference settings (keys of
     :class:`detector.stage2.poser.PoserConfig`, e.g. RANSAC's ``hypotheses``; ``--set infer.KEY=VALUE``); an
-    unknown key, a bad value or settings for a model without stage 2 is a one-line DetectorError."""
+    unknown key, a bad value or settings for a model without stage 2 is a one-line DetectorError. net_dtype: its
+    network's number format, resolved (:func:`detector.net_dtype.resolve_net_dtype`)."""
     if ckpt.stage2_net is None:
         if sets:
             raise DetectorError(f"--set infer.{next(iter(sets))}: this model has no stage 2 (a single network)")
@@ -281,4 +283,4 @@ def checkpoint_poser(ckpt, objects: ObjectInfo, device: str = "cpu", seed: int =
                             "model file lacks (README: detector.checkpoint.add_colour_levels adds them)")
     return CropPoser(ckpt.stage2_net, p["class_ids"], objects, CropConfig.from_dict(p["crop_config"]),
                      p["normalisation"], cfg, device, seed, support, floor,
-                     dict(zip((int(i) for i in p["class_ids"]), levels)) if levels is not None else None)
+                     dict(zip((int(i) for i in p["class_ids"]), levels)) if levels is not None else None, net_dtype)

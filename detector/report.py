@@ -41,6 +41,11 @@ def run_record(model: str | Path | None, labels: str | Path, **options) -> dict:
     return {"model": None if model is None else file_identity(model), "labels": file_identity(labels), **options}
 
 
+def networks_in(net_dtype: str | None) -> str:
+    """The words after "frames per second on DEVICE" for the networks' number format (None: not recorded)."""
+    return f", the networks in {net_dtype}" if net_dtype else ""
+
+
 #: The report.json entries that say how a report was made: equal in two reports, the same evaluation made them.
 MADE_BY = ("run", "icp", "config", "sampling", "infer")
 
@@ -193,7 +198,8 @@ def markdown(summary: dict) -> str:
         if s in summary["timing_ms"]:
             lines.append(f"| {s} | {summary['timing_ms'][s]:.1f} |")
     lines += [f"| **total** | **{summary['timing_ms']['total']:.1f}** |", "",
-              f"{summary['fps']:.2f} frames per second on {summary.get('device', 'cpu')}.", "",
+              f"{summary['fps']:.2f} frames per second on {summary.get('device', 'cpu')}"
+              f"{networks_in((summary.get('run') or {}).get('net_dtype'))}.", "",
               "Files: `report.json` (all numbers), `curve.png` (accuracy against threshold), "
               f"`{summary['bop_csv']}` (BOP results; R row-major, t in millimetres).", ""]
     return "\n".join(lines)

@@ -31,7 +31,7 @@ LAYERS = [
     ["detector.errors"],
     ["detector.config", "detector.geometry.", "detector.evaluation.metrics", "detector.evaluation.bop19"],
     ["detector.data.", "detector.evaluation.bop_eval"],
-    ["detector.training."],
+    ["detector.training.", "detector.net_dtype"],
     ["detector.stage1.", "detector.stage2."],
     ["detector.checkpoint", "detector.report"],
     ["detector.infer", "detector.two_stage"],

@@ -350,6 +350,7 @@ def test_eval_reuse_keeps_a_report_only_when_the_same_run_made_it(random_checkpo
     import shutil
 
     from detector.cli.app import app
+    from detector.net_dtype import resolve_net_dtype
 
     runner, rep = CliRunner(), tmp_path / "rep"
     base = [str(label_file), "--frames", "1", "--tau", "0", "--quiet", "--reuse"]
@@ -374,8 +375,10 @@ def test_eval_reuse_keeps_a_report_only_when_the_same_run_made_it(random_checkpo
     ck = torch.load(random_checkpoint, weights_only=False)
     ck["step"] = 1
     torch.save(ck, other)
+    assert js["run"]["net_dtype"] == resolve_net_dtype("auto")  # what auto chose on this CPU
+    other_dtype = "float32" if js["run"]["net_dtype"] == "bfloat16" else "bfloat16"
     changes = [["--seed", "1"], ["--set", "geometry.min_votes=4"], ["--set", "sampling.passes=2"],
-               ["--min-score", "0.3"], ["--min-visib", "0.2"], ["--icp"],
+               ["--min-score", "0.3"], ["--min-visib", "0.2"], ["--icp"], ["--net-dtype", other_dtype],
                ["--set", "geometry.min_score_unrefined=.inf"]]
     for k, extra in enumerate(changes):  # each against the base run's report
         shutil.copytree(rep, tmp_path / f"r{k}")
@@ -686,3 +689,26 @@ def test_sampling_fps_tree_predicts_at_the_tree_fps_keypoints_of_the_same_draw(r
     # two passes (drawn in two threads): the first pass's keypoints are the single pass's tree ones
     two = network_predictor(load_checkpoint(random_checkpoint, sampling={"fps": "tree", "passes": 2}), 5)(frame)
     assert np.array_equal(two.xyz[:len(b.xyz)], b.xyz) and len(two.xyz) == 2 * len(b.xyz)
+
+
+def test_stage1_in_bfloat16_predicts_at_the_same_points_close_to_float32(random_checkpoint, label_file):
+    """``net_dtype`` bfloat16 changes the network's arithmetic only: the same sampled keypoints, float outputs within
+    bfloat16's rounding of the float32 ones; a bad value fails when the predictor is made."""
+    from types import SimpleNamespace
+
+    from detector.checkpoint import load_checkpoint
+    from detector.errors import DetectorError
+    from detector.stage1.predictor import network_predictor
+
+    ck = load_checkpoint(random_checkpoint)
+    with LabelFile(label_file) as lf:
+        frame = SimpleNamespace(features=np.asarray(lf.frame(0).features, np.float32))
+    a, b = network_predictor(ck, 3)(frame), network_predictor(ck, 3, net_dtype="bfloat16")(frame)
+    assert np.array_equal(a.xyz, b.xyz)
+    assert b.class_probs.dtype == a.class_probs.dtype and b.control_points.dtype == np.float64
+    np.testing.assert_allclose(b.class_probs.sum(1), 1.0, atol=1e-5)
+    assert np.abs(b.class_probs - a.class_probs).mean() < 0.01
+    assert np.abs(b.control_points - a.control_points).max() < 0.01  # metres, of offsets of a few centimetres
+    assert not np.array_equal(b.control_points, a.control_points)  # it did compute in bfloat16
+    with pytest.raises(DetectorError, match="net_dtype"):
+        network_predictor(ck, 3, net_dtype="float16")

@@ -11,6 +11,12 @@ from detector.cli.common import user_errors
 from detector.errors import DetectorError
 
 
+#: eval's and predict's --net-dtype.
+NET_DTYPE_HELP = ("The networks' number format: float32, bfloat16 (CPU autocast: about two thirds of the networks' "
+                  "time on a CPU that multiplies bfloat16 in hardware, slower on one that does not) or auto (bfloat16 "
+                  "on such a CPU, else float32).")
+
+
 #: eval's and predict's --set: the model file's settings they change for one run (detector.infer.split_sets).
 SET_HELP = ("A geometry, sampling or stage-2 inference setting of the model file, e.g. --set "
             "geometry.depth_check=false (keys of detector.geometry.types.GeometryConfig), --set sampling.density=1 "
@@ -48,6 +54,7 @@ def register(app: typer.Typer) -> None:
                                                         "BOP19 AR (default: the one the label file names)."),
         device: str = typer.Option("cpu", "--device", help="torch device, e.g. cpu or cuda."),
         seed: int = typer.Option(0, "--seed", help="Point sampling seed."),
+        net_dtype: str = typer.Option("auto", "--net-dtype", help=NET_DTYPE_HELP),
         sets: list[str] = typer.Option([], "--set", help=SET_HELP),
         quiet: bool = typer.Option(False, "--quiet", help="No progress bar."),
         reuse: bool = typer.Option(False, "--reuse", help="Keep the report in --out when it was made as this run "
@@ -63,6 +70,7 @@ def register(app: typer.Typer) -> None:
         from detector.evaluate import evaluate, report_settings, scored_dataset
         from detector.infer import (check_label_objects, checkpoint_geometry_config, checkpoint_objects,
                                     checkpoint_poser, split_sets)
+        from detector.net_dtype import resolve_net_dtype
         from detector.report import made_alike, previous_report, run_record
         from detector.stage1.predictor import network_predictor
 
@@ -71,6 +79,7 @@ def register(app: typer.Typer) -> None:
         if not 0 <= min_visib <= 1:
             raise DetectorError(f"--min-visib is a visible fraction in [0, 1], got {min_visib}")
         sets, sampling, infer_sets = split_sets(sets)
+        net_dtype = resolve_net_dtype(net_dtype, device)
         ckpt = load_checkpoint(checkpoint, device, sampling)
         cfg = checkpoint_geometry_config(ckpt, tau, icp, min_score, sets)
         with open_label_file(data) as lf:
@@ -80,14 +89,15 @@ def register(app: typer.Typer) -> None:
             check_label_objects(ckpt, lf.objects)
             scored_on = scored_dataset(lf, bop_dataset)
         objects = checkpoint_objects(ckpt)[0]
-        poser = checkpoint_poser(ckpt, objects, device, seed, infer_sets)
-        run = run_record(checkpoint, data, seed=seed, device=device, min_visib=min_visib, frames=frames, method=method,
+        poser = checkpoint_poser(ckpt, objects, device, seed, infer_sets, net_dtype)
+        run = run_record(checkpoint, data, seed=seed, device=device, net_dtype=net_dtype, min_visib=min_visib,
+                         frames=frames, method=method,
                          dataset_name=dataset_name, bop_dataset=None if bop_dataset is None else str(bop_dataset),
                          bop_dataset_found=bool(scored_on) and Path(scored_on).is_dir())
         if reuse and made_alike(previous_report(out), report_settings(cfg, icp, ckpt.sampling_used, poser, run)):
             typer.echo(f"{out / 'report.md'} is up to date: made from the same model, label file, settings and seed")
             return
-        s = evaluate(network_predictor(ckpt, seed), data, out, icp=icp, cfg=cfg, device=device,
+        s = evaluate(network_predictor(ckpt, seed, net_dtype=net_dtype), data, out, icp=icp, cfg=cfg, device=device,
                      frames=list(range(min(n, frames or n))), min_visib=min_visib, progress=not quiet,
                      poser=poser, method=method, dataset_name=dataset_name, bop_dataset=bop_dataset,
                      sampling=ckpt.sampling_used, objects=objects, run=run)
@@ -117,6 +127,7 @@ def register(app: typer.Typer) -> None:
                                                   help="Drop detections scoring less (default: the model's own)."),
         device: str = typer.Option("cpu", "--device", help="torch device."),
         seed: int = typer.Option(0, "--seed", help="Point sampling seed."),
+        net_dtype: str = typer.Option("auto", "--net-dtype", help=NET_DTYPE_HELP),
         max_depth: Optional[float] = typer.Option(None, "--max-depth",
                                                   help="Use the points up to this depth, metres (default: the "
                                                        "working volume the model was trained in, when it says)."),
@@ -127,10 +138,12 @@ def register(app: typer.Typer) -> None:
         from detector.checkpoint import load_checkpoint
         from detector.infer import (checkpoint_geometry_config, checkpoint_max_depth, checkpoint_objects,
                                     checkpoint_poser, colour_networks, colour_readers, missing_surfaces, split_sets)
+        from detector.net_dtype import resolve_net_dtype
         from detector.predict import load_input, predict
         from detector.stage1.predictor import network_predictor
 
         sets, sampling, infer_sets = split_sets(sets)
+        net_dtype = resolve_net_dtype(net_dtype, device)
         ckpt = load_checkpoint(checkpoint, device, sampling)
         cfg = checkpoint_geometry_config(ckpt, tau, icp, min_score, sets)
         depth = checkpoint_max_depth(ckpt, max_depth)
@@ -144,8 +157,8 @@ def register(app: typer.Typer) -> None:
                        f"none (give the colour image with --rgb): {cost}", err=True)
         if (warning := missing_surfaces(cfg, objects, checkpoint.name)) is not None:
             typer.echo(f"detector: warning: {warning}", err=True)
-        res = predict(network_predictor(ckpt, seed), inp, objects, out, cfg, names,
-                      poser=checkpoint_poser(ckpt, objects, device, seed, infer_sets), max_depth=depth)
+        res = predict(network_predictor(ckpt, seed, net_dtype=net_dtype), inp, objects, out, cfg, names,
+                      poser=checkpoint_poser(ckpt, objects, device, seed, infer_sets, net_dtype), max_depth=depth)
         for d in res["detections"]:
             typer.echo(f"{d['name']} (obj {d['obj_id']}): score {d['score']:.2f}, t = "
                        + " ".join(f"{v:.3f}" for v in d["t"]) + " m")

@@ -12,6 +12,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 
+from detector.net_dtype import net_autocast
 from detector.stage1.dataset import inference_batch
 from detector.stage1.sampling import SamplingConfig
 
@@ -60,7 +61,7 @@ def oracle_predictor(num_points: int | None = None, seed: int = 0) -> Predictor:
     return predict
 
 
-def network_predictor(checkpoint, seed: int = 0, device: str | None = None) -> Predictor:
+def network_predictor(checkpoint, seed: int = 0, device: str | None = None, net_dtype: str = "float32") -> Predictor:
     """A predictor running ``checkpoint.model`` (a :class:`detector.checkpoint.Checkpoint`) on one frame.
 
     Sampling and neighbour indices as in training (``detector.stage1.dataset.inference_batch``); times "sampling" and
@@ -69,10 +70,12 @@ def network_predictor(checkpoint, seed: int = 0, device: str | None = None) -> P
     object without them samples as it trained, once): with ``passes`` P > 1 the frame is sampled P times (pass 0
     with ``seed``, as a single pass; pass k with the seed sequence (seed, k)), the samplings are drawn in two threads
     and go through the network as one batch of P, and the predictions are concatenated in pass order (P x K rows);
-    ``fps`` "tree": the tree-based FPS on every sampling level.
+    ``fps`` "tree": the tree-based FPS on every sampling level. net_dtype: the network's number format, resolved
+    (:func:`detector.net_dtype.resolve_net_dtype`: float32 or bfloat16).
     """
     sampling = SamplingConfig.from_dict(getattr(checkpoint, "sampling", None))
     passes, tree_fps = sampling.passes, sampling.fps == "tree"
+    net_autocast(net_dtype)  # a bad value fails here, not at the first frame
     model = checkpoint.model
     dev = torch.device(device) if device else next(model.parameters()).device
     model.to(dev).eval()
@@ -95,7 +98,7 @@ def network_predictor(checkpoint, seed: int = 0, device: str | None = None) -> P
         batch = {k: torch.cat([b[k] for b in batches]).to(dev) for k in batches[0]}
         feats = batch.pop("features")
         t1 = time.perf_counter()
-        with torch.no_grad():
+        with torch.no_grad(), net_autocast(net_dtype):
             out = model(feats, batch or None)
             if dev.type == "cuda":
                 torch.cuda.synchronize(dev)

@@ -19,6 +19,7 @@ from detector.geometry.icp import fit_residuals, fit_rms, support_radius, surfac
 from detector.geometry.kabsch import ransac_draws, ransac_kabsch
 from detector.geometry.types import Detection
 from detector.geometry.workers import map_threads
+from detector.net_dtype import net_autocast
 from detector.stage2.colour_level import level_gain, levelled
 from detector.stage2.crops import CropConfig, ball_rows, crop_input, roll_crop_input, sample_crop
 
@@ -93,13 +94,14 @@ def subset_rolls(samples: int, roll_deg: float) -> np.ndarray:
 @torch.no_grad()
 def crop_predictions(net, features: np.ndarray, centres: np.ndarray, classes: np.ndarray, diameters: np.ndarray,
                      crop_cfg: CropConfig, normalisation: dict, seed: int = 0, device="cpu", samples: int = 1,
-                     roll_deg: float = 0.0, gains: Sequence[float] | None = None):
+                     roll_deg: float = 0.0, gains: Sequence[float] | None = None, net_dtype: str = "float32"):
     """Run the crop network on ``samples`` point subsets (:func:`crop_subsets`) of one crop per centre, subset k
     rolled about the camera ray through the centre by :func:`subset_rolls`' k-th angle.
 
     features: (N,9) the frame's label features; centres: (D,3) metres; classes: (D,) class indices;
     diameters: (D,) metres; roll_deg: degrees; gains: (D,) each crop's colours are first multiplied by its gain
-    (:func:`detector.stage2.colour_level.levelled`; None: as they are). Returns a list of D (rows (m,) into
+    (:func:`detector.stage2.colour_level.levelled`; None: as they are); net_dtype: the network's number format,
+    resolved (:func:`detector.net_dtype.resolve_net_dtype`). Returns a list of D (rows (m,) into
     features, fg probability (m,), model coordinates (m,3) metres), the subsets' predictions one after the other
     (m = samples x ``crop_cfg.num_points``), or None where the crop holds fewer than ``crop_cfg.min_points`` points.
     """
@@ -123,8 +125,9 @@ def crop_predictions(net, features: np.ndarray, centres: np.ndarray, classes: np
         return out
     feats = torch.from_numpy(np.stack(batch)).to(device)
     cls = torch.as_tensor(np.asarray(classes)[[k for k, _ in keep]], dtype=torch.int64, device=device)
-    res = net(feats, cls)
-    prob = torch.sigmoid(res["fg_logit"]).cpu().numpy()
+    with net_autocast(net_dtype):
+        res = net(feats, cls)
+    prob = torch.sigmoid(res["fg_logit"].float()).cpu().numpy()
     coords = res["coords"].double().cpu().numpy()
     pooled: dict[int, list] = {}
     for j, (k, rows) in enumerate(keep):
@@ -196,23 +199,27 @@ class CropPoser:
     diameter, but at least ``support_floor`` metres (:func:`detector.geometry.icp.surface_support`): it tells wrong poses and false detections from right ones
     far better than vote or inlier shares (measured on a validation capture). colour_levels: {object id: (3,) RGB
     level in the training frames or None}, the model's (``cfg.colour_level``); None: none known (the option then has
-    no effect: :func:`detector.infer.checkpoint_poser` refuses it for a model file without them).
+    no effect: :func:`detector.infer.checkpoint_poser` refuses it for a model file without them); net_dtype: the
+    network's number format, resolved (:func:`detector.net_dtype.resolve_net_dtype`: float32 or bfloat16).
     """
 
     def __init__(self, net, class_ids: list[int], objects, crop_cfg: CropConfig, normalisation: dict,
                  cfg: PoserConfig | None = None, device="cpu", seed: int = 0, support_distance: float = 0.02,
-                 support_floor: float = 0.0, colour_levels: dict | None = None):
+                 support_floor: float = 0.0, colour_levels: dict | None = None, net_dtype: str = "float32"):
         self.net, self.class_ids, self.objects = net, list(class_ids), objects
         self.support_distance, self.support_floor = support_distance, support_floor
         self.crop_cfg, self.normalisation, self.cfg = crop_cfg, normalisation, cfg or PoserConfig()
         self.device, self.seed = device, seed
+        net_autocast(net_dtype)  # a bad value fails here, not at the first crop
+        self.net_dtype = net_dtype
         self.colour_levels = colour_levels if self.cfg.colour_level and reads_colour(normalisation) else None
 
     def _run(self, features, centres, oids, samples: int = 1, gains=None):
         classes = np.array([self.class_ids.index(o) for o in oids], np.int64)
         dia = np.array([self.objects.diameters[o] for o in oids], np.float64)
         return crop_predictions(self.net, features, np.asarray(centres), classes, dia, self.crop_cfg,
-                                self.normalisation, self.seed, self.device, samples, self.cfg.roll_deg, gains)
+                                self.normalisation, self.seed, self.device, samples, self.cfg.roll_deg, gains,
+                                self.net_dtype)
 
     def __call__(self, detections: list[Detection], features: np.ndarray, timings: dict | None = None
                  ) -> list[Detection]:
