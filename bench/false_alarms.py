@@ -72,7 +72,7 @@ def main() -> None:
                 print(f"{spec}: skipped: {e}", flush=True)
                 continue
             out = (a.out if a.out is not None else Path(tmp)) / re.sub(r"[^A-Za-z0-9_.-]+", "_", spec.strip("./"))
-            res = predict(predictor, inp, objects, out, cfg, names, poser, depth)
+            res = predict(predictor, inp, objects, out, cfg, names, poser, depth, net_dtype)
             dets = res["detections"]
             total, frames = total + len(dets), frames + 1
             print(f"{spec}: {len(dets)} " + " ".join(f"{d['name']}:{d['score']:.2f}" for d in dets), flush=True)

@@ -213,10 +213,12 @@ def detection_json(d: Detection, name: str) -> dict:
 
 
 def predict(predictor, inp: PointInput, objects: ObjectInfo, out_dir: Path, cfg: GeometryConfig | None = None,
-            names: dict[int, str] | None = None, poser=None, max_depth: float | None = None) -> dict:
+            names: dict[int, str] | None = None, poser=None, max_depth: float | None = None,
+            net_dtype: str | None = None) -> dict:
     """Run ``predictor`` (see :mod:`detector.infer`) and the geometry (with a two-stage model's ``poser``)
     on ``inp``; write poses.json and poses.png into ``out_dir``. Returns the JSON content. max_depth: the working
-    volume ``inp`` was read with (metres, None: all points), recorded in the JSON."""
+    volume ``inp`` was read with (metres, None: all points), recorded in the JSON; net_dtype: the networks' number
+    format the predictor and poser were made with (:mod:`detector.net_dtype`), recorded (None: not said)."""
     cfg = cfg or GeometryConfig()
     t0 = time.perf_counter()
     preds = predictor(SimpleNamespace(features=inp.features, scene_id=0, im_id=0))
@@ -226,7 +228,8 @@ def predict(predictor, inp: PointInput, objects: ObjectInfo, out_dir: Path, cfg:
     timings["total"] = time.perf_counter() - t0
     names = names or {}
     out = {"input": inp.name, "units": "metres; R, t and T_cam_model map model points into the camera frame",
-           "icp": bool(cfg.icp), "tau": cfg.tau, "max_depth": max_depth, "K": np.asarray(inp.K).tolist(),
+           "icp": bool(cfg.icp), "tau": cfg.tau, "max_depth": max_depth, "net_dtype": net_dtype,
+           "K": np.asarray(inp.K).tolist(),
            "detections": [detection_json(d, names.get(d.obj_id, str(d.obj_id))) for d in final],
            "timing_ms": {k: 1000 * v for k, v in timings.items()}}
     out_dir = Path(out_dir)

@@ -712,3 +712,45 @@ def test_stage1_in_bfloat16_predicts_at_the_same_points_close_to_float32(random_
     assert not np.array_equal(b.control_points, a.control_points)  # it did compute in bfloat16
     with pytest.raises(DetectorError, match="net_dtype"):
         network_predictor(ck, 3, net_dtype="float16")
+
+
+def test_cli_net_dtype_reaches_both_stages_and_the_outputs(random_checkpoint, dataset, tmp_path, monkeypatch):
+    """eval and predict make stage 1's predictor and stage 2's poser in the format --net-dtype names (auto resolved
+    on this CPU), record it in report.json, report.md and poses.json, and refuse a bad value or device in one line."""
+    import detector.infer
+    import detector.stage1.predictor
+    from detector.cli.app import app
+    from detector.net_dtype import resolve_net_dtype
+
+    made = []
+    for mod, name in ((detector.stage1.predictor, "network_predictor"), (detector.infer, "checkpoint_poser")):
+        real = getattr(mod, name)
+
+        def spy(*args, real=real, name=name, **kw):
+            made.append((name, kw.get("net_dtype", args[5] if name == "checkpoint_poser" and len(args) > 5 else None)))
+            return real(*args, **kw)
+        monkeypatch.setattr(mod, name, spy)
+    from argen import bop
+
+    ds, h5 = dataset
+    runner = CliRunner()
+    for asked, want in (("bfloat16", "bfloat16"), ("float32", "float32"), ("auto", resolve_net_dtype("auto"))):
+        made.clear()
+        rep = tmp_path / f"rep_{asked}"
+        r = runner.invoke(app, ["eval", str(random_checkpoint), str(h5), "--out", str(rep), "--frames", "1",
+                                "--tau", "0", "--quiet", "--net-dtype", asked])
+        assert r.exit_code == 0, r.output
+        assert sorted(made) == [("checkpoint_poser", want), ("network_predictor", want)]
+        assert json.loads((rep / "report.json").read_text())["run"]["net_dtype"] == want
+        assert f"the networks in {want}" in (rep / "report.md").read_text()
+    frame = str(ds / "train_pbr" / "000000" / str(bop.load_scene(ds, "train_pbr", 0).im_ids[0]))
+    r = runner.invoke(app, ["predict", str(random_checkpoint), frame, "--out", str(tmp_path / "p"), "--net-dtype",
+                            "bfloat16"])
+    assert r.exit_code == 0, r.output
+    assert json.loads((tmp_path / "p" / "poses.json").read_text())["net_dtype"] == "bfloat16"
+    for bad, words in ((["--net-dtype", "half"], ["--net-dtype must be one of"]),
+                       (["--device", "gpu"], ["--device gpu", "not a torch device"])):
+        for cmd in (["eval", str(random_checkpoint), str(h5), "--out", str(tmp_path / "bad")],
+                    ["predict", str(random_checkpoint), frame, "--out", str(tmp_path / "bad")]):
+            assert_one_line_error(runner.invoke(app, cmd + bad), *words)
+    assert not (tmp_path / "bad").exists()

@@ -11,7 +11,7 @@ from detector.errors import DetectorError
 from detector import net_dtype as nd
 from detector.stage2.crops import CropConfig
 from detector.stage2.network import CropNet, CropNetConfig
-from detector.stage2.poser import crop_predictions
+from detector.stage2.poser import CropPoser, crop_predictions
 
 
 def test_cpu_flags_are_read_from_cpuinfo():
@@ -34,6 +34,11 @@ def test_auto_is_bfloat16_only_on_a_cpu_that_multiplies_it(monkeypatch):
         nd.resolve_net_dtype("bfloat16", "cuda")
     with pytest.raises(DetectorError, match="once resolved"):
         nd.net_autocast("auto")
+    with pytest.raises(DetectorError, match="CPU only"):
+        nd.check_net_dtype("bfloat16", "cuda")  # a predictor or poser made for a GPU refuses it, not ignores it
+    nd.check_net_dtype("float32", "cuda")
+    with pytest.raises(DetectorError, match="not a torch device"):
+        nd.resolve_net_dtype("auto", "gpu")
 
 
 def test_stage2_in_bfloat16_predicts_the_same_points_close_to_float32():
@@ -50,6 +55,8 @@ def test_stage2_in_bfloat16_predicts_the_same_points_close_to_float32():
     centres, classes, dia = np.array([[0.0, 0.0, 0.8], [0.03, 0.0, 0.8]]), np.array([1, 3]), np.array([0.1, 0.15])
     args = (net, feats, centres, classes, dia, CropConfig(), NORMALISATION, 7, "cpu", 2)
     a, b = crop_predictions(*args), crop_predictions(*args, net_dtype="bfloat16")
+    with pytest.raises(DetectorError, match="CPU only"):
+        CropPoser(net, [1, 2, 3, 4], None, CropConfig(), NORMALISATION, device="cuda", net_dtype="bfloat16")
     for (ra, pa, ca), (rb, pb, cb), d in zip(a, b, dia):
         assert np.array_equal(ra, rb) and pb.dtype == pa.dtype and cb.dtype == np.float64
         assert np.abs(pb - pa).max() < 0.05

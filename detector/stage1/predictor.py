@@ -12,7 +12,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 
-from detector.net_dtype import net_autocast
+from detector.net_dtype import check_net_dtype, net_autocast
 from detector.stage1.dataset import inference_batch
 from detector.stage1.sampling import SamplingConfig
 
@@ -75,9 +75,9 @@ def network_predictor(checkpoint, seed: int = 0, device: str | None = None, net_
     """
     sampling = SamplingConfig.from_dict(getattr(checkpoint, "sampling", None))
     passes, tree_fps = sampling.passes, sampling.fps == "tree"
-    net_autocast(net_dtype)  # a bad value fails here, not at the first frame
     model = checkpoint.model
     dev = torch.device(device) if device else next(model.parameters()).device
+    check_net_dtype(net_dtype, dev)  # a bad value fails here, not at the first frame
     model.to(dev).eval()
     seeds = [seed] + [[seed, k] for k in range(1, passes)]
 

@@ -19,7 +19,7 @@ from detector.geometry.icp import fit_residuals, fit_rms, support_radius, surfac
 from detector.geometry.kabsch import ransac_draws, ransac_kabsch
 from detector.geometry.types import Detection
 from detector.geometry.workers import map_threads
-from detector.net_dtype import net_autocast
+from detector.net_dtype import check_net_dtype, net_autocast
 from detector.stage2.colour_level import level_gain, levelled
 from detector.stage2.crops import CropConfig, ball_rows, crop_input, roll_crop_input, sample_crop
 
@@ -210,7 +210,7 @@ class CropPoser:
         self.support_distance, self.support_floor = support_distance, support_floor
         self.crop_cfg, self.normalisation, self.cfg = crop_cfg, normalisation, cfg or PoserConfig()
         self.device, self.seed = device, seed
-        net_autocast(net_dtype)  # a bad value fails here, not at the first crop
+        check_net_dtype(net_dtype, device)  # a bad value fails here, not at the first crop
         self.net_dtype = net_dtype
         self.colour_levels = colour_levels if self.cfg.colour_level and reads_colour(normalisation) else None
 
