@@ -2,13 +2,15 @@
 current code does it and as it was done before (issue 17).
 
 Usage: .venv/bin/python bench/bench_train_pose.py --data data/lm_train.h5 [--batches 20] [--rounds 3] [--threads 2]
+                                                  [--bfloat16]
 
 Data: the median time to make one batch (``batch_frames`` frames' crops with the default augmentation) in this
 process, reading every frame from the label file ("read") or cutting it from the frames' cached crop regions
 ("cached", ``Stage2TrainConfig.cache_mb``; a first pass fills the cache, untimed). Network: the median of forward +
 loss + backward + AdamW over the same prepared batches, with the edge-convolutions' training max as
 ``detector.stage2.network._NeighbourMax`` ("running max") or as the earlier gather to (B, n, k, C) and max ("gather").
-The rounds alternate the two forms so that a VM's drift hits both; medians over all rounds. In a training run the
+With ``--bfloat16`` also the running max with the forward and loss in bfloat16 (``stage2.net_dtype``, torch's CPU
+autocast). The rounds alternate the forms so that a VM's drift hits them all; medians over all rounds. In a training run the
 data work runs in a loader process beside the network step on the same cores, so both add to a step's time.
 """
 
@@ -35,7 +37,8 @@ def gather_max(b: torch.Tensor, rows: torch.Tensor) -> torch.Tensor:
 
 
 def network_step_times(batches: list, cfg, seed: int = 0) -> list[float]:
-    """Seconds of forward + loss + backward + AdamW for each batch (a fresh seeded network)."""
+    """Seconds of forward + loss + backward + AdamW for each batch (a fresh seeded network; the forward and loss in
+    ``cfg.net_dtype``)."""
     torch.manual_seed(seed)
     net = cropnet.CropNet(cfg.net, 8)
     opt = torch.optim.AdamW(net.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
@@ -56,6 +59,7 @@ def main() -> None:
     ap.add_argument("--batches", type=int, default=20)
     ap.add_argument("--rounds", type=int, default=3)
     ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--bfloat16", action="store_true", help="also time the running max in bfloat16")
     a = ap.parse_args()
     torch.set_num_threads(a.threads)
     cfg = load_stage2_config(None, {"crop.neighbour": 0.5})
@@ -68,6 +72,9 @@ def main() -> None:
             cached[(0, k[1])]
     times: dict[str, list[float]] = {"data read": [], "data cached": [], "network gather": [],
                                      "network running max": []}
+    if a.bfloat16:
+        times["network running max, bfloat16"] = []
+    b16 = load_stage2_config(None, {"crop.neighbour": 0.5, "net_dtype": "bfloat16"})
     batches = None
     apply = cropnet._NeighbourMax.apply
     for r in range(a.rounds):
@@ -78,10 +85,12 @@ def main() -> None:
                 made.append(collate_crops([ds[k] for k in ks]))
                 times[name].append(time.perf_counter() - t)
             batches = made
-        order = [("network gather", gather_max), ("network running max", apply)]
-        for name, fn in (order if r % 2 == 0 else order[::-1]):
+        order = [("network gather", gather_max, cfg), ("network running max", apply, cfg)]
+        if a.bfloat16:
+            order.append(("network running max, bfloat16", apply, b16))
+        for name, fn, c in (order if r % 2 == 0 else order[::-1]):
             cropnet._NeighbourMax.apply = fn
-            times[name] += network_step_times(batches, cfg)
+            times[name] += network_step_times(batches, c)
         cropnet._NeighbourMax.apply = apply
     crops = statistics.mean(len(b["cls"]) for b in batches)
     res = {k: round(statistics.median(v), 4) for k, v in times.items()}

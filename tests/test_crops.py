@@ -327,6 +327,44 @@ def test_ball_rows_are_the_points_within_the_radius():
         assert np.array_equal(ball_rows(xyz, centre, radius), brute)
 
 
+def test_stage2_trains_in_bfloat16_close_to_float32_and_lowers_the_loss(labels):
+    """``stage2.net_dtype`` bfloat16: a batch's loss and its gradients within bfloat16's rounding of float32's, the
+    weights stay float32, and a few steps lower the loss as in float32; a run saved before the setting resumes as
+    float32; another format is a config error."""
+    from detector.stage2.train import forward_stage2_loss, saved_settings
+
+    ds = CropDataset(labels, CropConfig(num_points=128), augment=True, seed=0)
+    batch = collate_crops([ds[(0, i)] for i in range(len(ds))])
+    f32, b16 = load_stage2_config(None), load_stage2_config(None, {"net_dtype": "bfloat16"})
+    torch.manual_seed(0)
+    net = CropNet(CropNetConfig(width=32, edge_width=32, global_width=64, head_width=64, k=8), len(ds.class_ids))
+    grads = []
+    for cfg in (f32, b16):
+        net.zero_grad()
+        loss, parts = forward_stage2_loss(net, batch, cfg, torch.device("cpu"))
+        loss.backward()
+        assert loss.dtype == torch.float32
+        grads.append(torch.cat([p.grad.flatten() for p in net.parameters()]))
+        if cfg is f32:
+            ref = float(loss.detach())
+    assert abs(float(loss.detach()) - ref) < 0.02 * ref and float(loss.detach()) != ref
+    assert all(p.dtype == torch.float32 and p.grad.dtype == torch.float32 for p in net.parameters())
+    cos = torch.nn.functional.cosine_similarity(grads[0], grads[1], dim=0)
+    assert cos > 0.99, float(cos)
+    opt = torch.optim.Adam(net.parameters(), lr=3e-3)
+    losses = []
+    for _ in range(40):
+        loss, _ = forward_stage2_loss(net, batch, b16, torch.device("cpu"))
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+        losses.append(float(loss.detach()))
+    assert losses[-1] < 0.5 * losses[0]
+    assert saved_settings({"steps": 3})["net_dtype"] == "float32"
+    with pytest.raises(DetectorError, match="net_dtype must be float32 or bfloat16"):
+        load_stage2_config(None, {"net_dtype": "float16"})
+
+
 def test_knn_finds_the_same_neighbours_in_training_and_at_inference():
     torch.manual_seed(1)
     xyz = torch.randn(3, 40, 3)
@@ -359,7 +397,7 @@ def test_edge_convolution_equals_its_definition_per_point():
 
     # (and one started before narrow_steps trained its stages one after the other: 0)
     assert saved_settings({"net": {"k": 12, "norm_before_max": False}, "steps": 3}) == \
-        {"net": {"k": 12}, "steps": 3, "narrow_steps": 0}
+        {"net": {"k": 12}, "steps": 3, "narrow_steps": 0, "net_dtype": "float32"}
     # one started before part symmetries is resumed without them; a new run has them
     assert saved_settings({"crop": {"colour": "none"}})["crop"]["part_turns"] is False
     assert CropConfig().part_turns is True

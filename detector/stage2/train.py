@@ -21,6 +21,7 @@ from detector.config import config_from_dict, config_to_dict, set_dotted
 from detector.data.augment import COLOUR_MODES, COLOUR_MODES_TEXT, input_normalisation
 from detector.data.batches import StreamBatchSampler
 from detector.errors import DetectorError
+from detector.net_dtype import check_net_dtype, net_autocast
 from detector.stage2.crops import CropConfig
 from detector.stage2.dataset import CropDataset, collate_crops
 from detector.stage2.network import CropNet, CropNetConfig, crop_loss
@@ -39,7 +40,7 @@ STAGE2_METRICS = ["step", "epoch", "loss", "fg", "coord", "fg_acc", "crops", "lr
 
 #: Settings added to Stage2TrainConfig after runs were first saved, with the value that reproduces a run saved
 #: without them (:func:`saved_settings`).
-STAGE2_ADDED_SETTINGS = {"crop.negatives": 0.0, "crop.part_turns": False, "narrow_steps": 0}
+STAGE2_ADDED_SETTINGS = {"crop.negatives": 0.0, "crop.part_turns": False, "narrow_steps": 0, "net_dtype": "float32"}
 
 #: Stage2TrainConfig keys that may differ when resuming: they do not change the steps' numbers (``steps`` stretches
 #: or shortens the schedule from the step reached; the crop cache holds the same crops whatever its size).
@@ -58,7 +59,9 @@ class Stage2TrainConfig:
     the threads stage 1 leaves when the stages train side by side, the later ones on all
     (:mod:`detector.training.threads`; thread counts change a step's rounding, so this is a setting of the run;
     None = the two-stage config sets it from stage 1's steps; 0 = the stages one after the other, each on all
-    threads, as runs saved before this setting trained)."""
+    threads, as runs saved before this setting trained); net_dtype: the number format of the network's forward
+    and loss, "float32" or "bfloat16" (torch's CPU autocast, as ``detector eval --net-dtype``; the weights, their
+    gradients and the optimiser stay float32; on the CPU only)."""
 
     crop: CropConfig = field(default_factory=CropConfig)
     net: CropNetConfig = field(default_factory=CropNetConfig)
@@ -80,6 +83,7 @@ class Stage2TrainConfig:
     device: str = "auto"
     seed: int = 0
     narrow_steps: int | None = None
+    net_dtype: str = "float32"
 
 
 def stage2_payload(net: CropNet, cfg: Stage2TrainConfig, class_ids: list[int], objects: dict, step: int,
@@ -96,8 +100,9 @@ def forward_stage2_loss(net: torch.nn.Module, batch: dict, cfg: Stage2TrainConfi
     """Loss of a batch of crops and its parts, plus the foreground accuracy and the number of crops."""
     feats, cls = batch["features"].to(device), batch["cls"].to(device)
     fg, coords, mask = batch["fg"].to(device), batch["coords"].to(device), batch["sym_mask"].to(device)
-    out = net(feats, cls)
-    loss, parts = crop_loss(out, fg, coords, mask, cfg.w_coord)
+    with net_autocast(cfg.net_dtype):
+        out = net(feats, cls)
+        loss, parts = crop_loss(out, fg, coords, mask, cfg.w_coord)
     acc = ((out["fg_logit"] > 0).float() == fg).float().mean()
     return loss, {"loss": float(loss.detach()), "fg": float(parts["fg"]), "coord": float(parts["coord"]),
                   "fg_acc": float(acc), "crops": int(len(cls))}
@@ -117,6 +122,7 @@ def train_stage2(cfg: Stage2TrainConfig, train_path: str | Path, out_dir: str | 
     out_dir = Path(out_dir)
     last_path = run_checkpoint(out_dir, resume)
     device = resolve_device(cfg.device)
+    check_net_dtype(cfg.net_dtype, device)  # bfloat16: the CPU only
     ds = CropDataset(train_path, cfg.crop, augment=cfg.augment, seed=cfg.seed, class_ids=cfg.class_ids,
                      cache_mb=cfg.cache_mb)
     with torch.random.fork_rng(devices=[device] if device.type == "cuda" else []):
@@ -235,6 +241,8 @@ def load_stage2_config(data: dict | None, overrides: dict | None = None) -> Stag
                             "[min, max] with 0 < min <= max")
     if not 0.0 <= cfg.crop.negatives <= 1.0:
         raise DetectorError(f"stage-2 config: crop.negatives must lie in [0, 1], got {cfg.crop.negatives}")
+    if cfg.net_dtype not in ("float32", "bfloat16"):
+        raise DetectorError(f"stage-2 config: net_dtype must be float32 or bfloat16, got '{cfg.net_dtype}'")
     if cfg.crop.colour not in COLOUR_MODES:
         raise DetectorError(f"stage-2 config: crop.colour must be {COLOUR_MODES_TEXT}, got '{cfg.crop.colour}'")
     return cfg
