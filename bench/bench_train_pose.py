@@ -72,11 +72,13 @@ def main() -> None:
             cached[(0, k[1])]
     times: dict[str, list[float]] = {"data read": [], "data cached": [], "network gather": [],
                                      "network running max": []}
-    if a.bfloat16:
-        times["network running max, bfloat16"] = []
-    b16 = load_stage2_config(None, {"crop.neighbour": 0.5, "net_dtype": "bfloat16"})
-    batches = None
     apply = cropnet._NeighbourMax.apply
+    forms = [("network gather", gather_max, cfg), ("network running max", apply, cfg)]
+    if a.bfloat16:
+        forms.append(("network running max, bfloat16", apply,
+                      load_stage2_config(None, {"crop.neighbour": 0.5, "net_dtype": "bfloat16"})))
+        times["network running max, bfloat16"] = []
+    batches = None
     for r in range(a.rounds):
         for name, ds in (("data read", read), ("data cached", cached)):
             made = []
@@ -85,10 +87,7 @@ def main() -> None:
                 made.append(collate_crops([ds[k] for k in ks]))
                 times[name].append(time.perf_counter() - t)
             batches = made
-        order = [("network gather", gather_max, cfg), ("network running max", apply, cfg)]
-        if a.bfloat16:
-            order.append(("network running max, bfloat16", apply, b16))
-        for name, fn, c in (order if r % 2 == 0 else order[::-1]):
+        for name, fn, c in (forms if r % 2 == 0 else forms[::-1]):
             cropnet._NeighbourMax.apply = fn
             times[name] += network_step_times(batches, c)
         cropnet._NeighbourMax.apply = apply
